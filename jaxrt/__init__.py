@@ -1,0 +1,33 @@
+"""jaxrt: a purely functional ray tracer in JAX, after Metal's ray tracing API.
+
+Examples:
+  >>> import jaxrt as rt
+  >>> geometry = rt.TriangleGeometry([[0., 0, 0], [1, 0, 0], [0, 1, 0]])
+  >>> structure = rt.build_primitive_structure(geometry)
+  >>> result = rt.Intersector().intersect(rt.Ray([.25, .25, 1], [0., 0, -1]), structure)
+  >>> int(result.type) == rt.IntersectionType.TRIANGLE, float(result.distance)
+  (True, 1.0)
+"""
+
+from jaxrt import tags
+from jaxrt._src.geometry import TriangleGeometry
+from jaxrt._src.intersector import Intersector
+from jaxrt._src.numerics import offset_ray_origin
+from jaxrt._src.ray import Ray
+from jaxrt._src.result import IntersectionResult, IntersectionType
+from jaxrt._src.structures import PrimitiveAccelerationStructure, build_primitive_structure, refit
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "IntersectionResult",
+    "IntersectionType",
+    "Intersector",
+    "PrimitiveAccelerationStructure",
+    "Ray",
+    "TriangleGeometry",
+    "build_primitive_structure",
+    "offset_ray_origin",
+    "refit",
+    "tags",
+]

@@ -1,0 +1,150 @@
+"""Geometry descriptors and their validation.
+
+A geometry is an immutable pytree: its arrays (vertices, indices, primitive data) are leaves, its
+configuration (opacity) is static. Validation runs on the host in the constructor wherever the arrays are
+concrete; inside ``jax.jit`` (traced arrays) only shapes and dtypes can be checked.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["TriangleGeometry", "Geometry", "float_dtype"]
+
+
+def float_dtype() -> jnp.dtype:
+    """The float dtype geometry is stored in: float64 under ``jax_enable_x64``, else float32."""
+    return jnp.dtype(jnp.float64) if jax.config.jax_enable_x64 else jnp.dtype(jnp.float32)
+
+
+def _is_concrete(x: Any) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+def _as_float_array(value: Any, name: str, owner: str) -> jax.Array:
+    dtype = getattr(value, "dtype", None)
+    if dtype is None:
+        value = np.asarray(value)
+        dtype = value.dtype
+    dtype = np.dtype(dtype)
+    if dtype not in (np.float32, np.float64):
+        raise TypeError(f"{owner}: {name} must be float32 or float64, got dtype {dtype}")
+    return jnp.asarray(value, float_dtype())
+
+
+def _check_finite(array: jax.Array, name: str, owner: str) -> None:
+    if not _is_concrete(array):
+        return
+    host = np.asarray(array)
+    bad = ~np.isfinite(host)
+    if bad.any():
+        index = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise ValueError(f"{owner}: {name} has a non-finite value {host[index]} at index {index}")
+
+
+def _check_primitive_data(data: Any, count: int, owner: str) -> None:
+    for path, leaf in jax.tree_util.tree_leaves_with_path(data):
+        shape = np.shape(leaf)
+        if len(shape) == 0 or shape[0] != count:
+            where = jax.tree_util.keystr(path) or "(root)"
+            raise ValueError(
+                f"{owner}: primitive_data leaf {where} has shape {shape}; its leading dimension must equal "
+                f"the primitive count {count}"
+            )
+
+
+@jax.tree_util.register_pytree_node_class
+class TriangleGeometry:
+    """Triangles from a vertex buffer and an optional index buffer (Metal's triangle geometry descriptor).
+
+    Args:
+      vertices: ``(V, 3)`` float32 (or float64 under x64) vertex positions.
+      indices: ``(T, 3)`` integer vertex indices per triangle; ``None`` takes consecutive vertex triples.
+      primitive_data: optional pytree whose leaves have leading dimension ``T`` (per-triangle user data).
+      opaque: static; ``False`` marks the geometry as alpha-tested (candidates go to the filter).
+
+    Raises:
+      TypeError: a non-float ``vertices`` or non-integer ``indices`` dtype.
+      ValueError: wrong shapes, empty geometry, non-finite vertices, indices out of range, or primitive data
+        whose leading dimension is not ``T``. The message names the argument and the offending value.
+
+    Examples:
+      >>> import jaxrt as rt
+      >>> tri = rt.TriangleGeometry([[0., 0, 0], [1, 0, 0], [0, 1, 0]])
+      >>> tri.primitive_count
+      1
+    """
+
+    kind = "triangle"
+
+    def __init__(self, vertices: Any, indices: Any = None, *, primitive_data: Any = None, opaque: bool = True):
+        owner = "TriangleGeometry"
+        vertices = _as_float_array(vertices, "vertices", owner)
+        if vertices.ndim != 2 or vertices.shape[1] != 3:
+            raise ValueError(f"{owner}: vertices must have shape (V, 3), got {tuple(vertices.shape)}")
+        if vertices.shape[0] == 0:
+            raise ValueError(f"{owner}: vertices is empty (shape {tuple(vertices.shape)}); a geometry needs a triangle")
+        _check_finite(vertices, "vertices", owner)
+        if indices is None:
+            if vertices.shape[0] % 3:
+                raise ValueError(
+                    f"{owner}: without indices the vertex count must be a multiple of 3, got {vertices.shape[0]}"
+                )
+            indices = jnp.arange(vertices.shape[0], dtype=jnp.int32).reshape(-1, 3)
+        else:
+            dtype = np.dtype(getattr(indices, "dtype", None) or np.asarray(indices).dtype)
+            if not np.issubdtype(dtype, np.integer):
+                raise TypeError(f"{owner}: indices must have an integer dtype, got {dtype}")
+            if _is_concrete(indices):
+                host = np.asarray(indices)
+                if host.ndim != 2 or host.shape[1] != 3:
+                    raise ValueError(f"{owner}: indices must have shape (T, 3), got {host.shape}")
+                if host.shape[0] == 0:
+                    raise ValueError(f"{owner}: indices is empty (shape {host.shape}); a geometry needs a triangle")
+                bad = (host < 0) | (host >= vertices.shape[0])
+                if bad.any():
+                    t, c = (int(i) for i in np.argwhere(bad)[0])
+                    raise ValueError(
+                        f"{owner}: indices[{t}, {c}] = {int(host[t, c])} is out of range for "
+                        f"{vertices.shape[0]} vertices"
+                    )
+                if host.max() > np.iinfo(np.int32).max:
+                    raise ValueError(f"{owner}: indices exceed the int32 range")
+            elif indices.ndim != 2 or indices.shape[1] != 3 or indices.shape[0] == 0:
+                raise ValueError(f"{owner}: indices must have shape (T, 3) with T > 0, got {tuple(indices.shape)}")
+            indices = jnp.asarray(indices, jnp.int32)
+        if primitive_data is not None:
+            _check_primitive_data(primitive_data, indices.shape[0], owner)
+        self.vertices = vertices
+        self.indices = indices
+        self.primitive_data = primitive_data
+        self.opaque = bool(opaque)
+
+    @property
+    def primitive_count(self) -> int:
+        """Number of triangles (static)."""
+        return int(self.indices.shape[0])
+
+    def triangle_vertices(self) -> jax.Array:
+        """``(T, 3, 3)`` vertex positions per triangle (differentiable gather)."""
+        return self.vertices[self.indices]
+
+    def tree_flatten(self):
+        return (self.vertices, self.indices, self.primitive_data), (self.opaque,)
+
+    @classmethod
+    def tree_unflatten(cls, aux, children):
+        obj = object.__new__(cls)
+        obj.vertices, obj.indices, obj.primitive_data = children
+        (obj.opaque,) = aux
+        return obj
+
+    def __repr__(self) -> str:
+        return f"TriangleGeometry(vertices={tuple(self.vertices.shape)}, triangles={self.primitive_count}, opaque={self.opaque})"
+
+
+Geometry = TriangleGeometry

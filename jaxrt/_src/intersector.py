@@ -1,0 +1,246 @@
+"""The intersector: static tags and options, the traversal it compiles, and result assembly."""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+from jaxrt import tags as tag_module
+from jaxrt._src.primitives import triangle
+from jaxrt._src.ray import Ray
+from jaxrt._src.result import IntersectionResult, IntersectionType
+from jaxrt._src.structures import PrimitiveAccelerationStructure
+from jaxrt._src.traversal.stack import traverse
+
+__all__ = ["Intersector"]
+
+_SUPPORTED_TAGS = frozenset(["triangle_data", "stats"])
+_CULL_MODES = ("none", "front", "back")
+_WINDINGS = ("clockwise", "counterclockwise")
+_BACKENDS = ("auto", "portable", "gpu")
+#: Rays per vmapped traversal batch on the CPU. A vmapped loop runs until its slowest lane ends, so
+#: smaller batches waste fewer steps; too small and the per-step overhead dominates.
+CPU_CHUNK = 1024
+GPU_CHUNK = 1 << 20
+
+
+class _TriangleLeaves:
+    """Watertight triangle tests of BVH leaves (a :class:`~jaxrt._src.traversal.stack.LeafTester`)."""
+
+    def __init__(self, leaf_triangle: jax.Array, cull: int):
+        self.leaf_triangle = leaf_triangle
+        self.cull = cull
+
+    def prepare(self, origin, direction):
+        return triangle.shear_ray(origin, direction)
+
+    def __call__(self, context, leaves, t_min, t_max):
+        hit = triangle.watertight(context, t_min, t_max, self.leaf_triangle[jnp.maximum(leaves, 0)], self.cull)
+        return hit.hit & (leaves >= 0), hit.distance
+
+
+def _ray_bucket(n: int) -> int:
+    return 1 << max(0, (max(n, 1) - 1).bit_length())
+
+
+class Intersector:
+    """Intersects rays with acceleration structures (Metal's ``intersector``).
+
+    Args:
+      *tags: tags from ``rt.tags``; each adds result fields and only then compiles their work.
+      accept_any_intersection: stop at the first accepted hit (occlusion/shadow rays) instead of the nearest.
+      triangle_cull_mode: ``"none"``, ``"front"`` or ``"back"``: skip triangles facing that way.
+      front_facing_winding: ``"clockwise"`` (Metal's default) or ``"counterclockwise"``: the winding, seen
+        from the ray origin, of a front-facing triangle. With right-handed coordinates a triangle is clockwise
+        when ``dot(cross(v1 - v0, v2 - v0), ray.direction) > 0``.
+      backend: ``"auto"``, ``"portable"`` (the vmapped stack traversal) or ``"gpu"``.
+      geometry_types, curve_basis, curve_type, curve_control_point_count, intersection_functions, filter,
+        max_hits: options for geometry kinds this version does not provide yet; they must be ``None``.
+
+    All options are static and hashable: an intersector can be closed over by ``jax.jit`` and used as a
+    static argument.
+
+    Raises:
+      ValueError: an unknown tag or a bad option value. NotImplementedError: a tag or option for a feature
+        this version does not provide.
+
+    Examples:
+      >>> import jaxrt as rt
+      >>> s = rt.build_primitive_structure(rt.TriangleGeometry([[0., 0, 0], [1, 0, 0], [0, 1, 0]]))
+      >>> hit = rt.Intersector(rt.tags.triangle_data).intersect(rt.Ray([.2, .2, -1], [0., 0, 1]), s)
+      >>> float(hit.distance), hit.triangle_barycentric_coord.tolist()
+      (1.0, [0.20000000298023224, 0.20000000298023224])
+    """
+
+    def __init__(
+        self,
+        *tags: tag_module.Tag,
+        accept_any_intersection: bool = False,
+        triangle_cull_mode: str = "none",
+        front_facing_winding: str = "clockwise",
+        backend: str = "auto",
+        geometry_types: Any = None,
+        curve_basis: Any = None,
+        curve_type: Any = None,
+        curve_control_point_count: Any = None,
+        intersection_functions: Any = None,
+        filter: Any = None,  # noqa: A002 - Metal's name
+        max_hits: Any = None,
+    ):
+        for tag in tags:
+            if not isinstance(tag, tag_module.Tag) or tag.name not in tag_module.KNOWN:
+                raise ValueError(f"Intersector: unknown tag {tag!r}; tags come from jaxrt.tags")
+            if tag.name not in _SUPPORTED_TAGS:
+                raise NotImplementedError(f"Intersector: tags.{tag.name} is not supported in this version")
+        if triangle_cull_mode not in _CULL_MODES:
+            raise ValueError(f"Intersector: triangle_cull_mode must be one of {_CULL_MODES}, got {triangle_cull_mode!r}")
+        if front_facing_winding not in _WINDINGS:
+            raise ValueError(f"Intersector: front_facing_winding must be one of {_WINDINGS}, got {front_facing_winding!r}")
+        if backend not in _BACKENDS:
+            raise ValueError(f"Intersector: backend must be one of {_BACKENDS}, got {backend!r}")
+        if not isinstance(accept_any_intersection, bool):
+            raise ValueError(f"Intersector: accept_any_intersection must be a bool, got {accept_any_intersection!r}")
+        unsupported = dict(
+            geometry_types=geometry_types, curve_basis=curve_basis, curve_type=curve_type,
+            curve_control_point_count=curve_control_point_count, intersection_functions=intersection_functions,
+            filter=filter, max_hits=max_hits,
+        )
+        for name, value in unsupported.items():
+            if value is not None:
+                raise NotImplementedError(f"Intersector: {name} is not supported in this version (got {value!r})")
+        self.tags = tuple(sorted(set(tags)))
+        self.accept_any_intersection = accept_any_intersection
+        self.triangle_cull_mode = triangle_cull_mode
+        self.front_facing_winding = front_facing_winding
+        self.backend = backend
+
+    def _key(self):
+        return (self.tags, self.accept_any_intersection, self.triangle_cull_mode, self.front_facing_winding, self.backend)
+
+    def __hash__(self) -> int:
+        return hash(self._key())
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Intersector) and self._key() == other._key()
+
+    def __repr__(self) -> str:
+        tags = ", ".join(t.name if t.value is None else f"{t.name}({t.value})" for t in self.tags)
+        return (
+            f"Intersector({tags}, accept_any_intersection={self.accept_any_intersection}, "
+            f"triangle_cull_mode={self.triangle_cull_mode!r}, front_facing_winding={self.front_facing_winding!r}, "
+            f"backend={self.backend!r})"
+        )
+
+    def has(self, name: str) -> bool:
+        """Whether the intersector carries the tag called ``name``."""
+        return any(t.name == name for t in self.tags)
+
+    @property
+    def _cull(self) -> int:
+        """+1 culls clockwise triangles, -1 counterclockwise ones, 0 none."""
+        if self.triangle_cull_mode == "none":
+            return 0
+        front = 1 if self.front_facing_winding == "clockwise" else -1
+        return front if self.triangle_cull_mode == "front" else -front
+
+    def intersect(self, rays: Ray, structure: PrimitiveAccelerationStructure) -> IntersectionResult:
+        """Intersect a batch of rays (any batch shape) with a structure.
+
+        Works under ``jax.jit`` and ``jax.vmap``. The ray batch is padded to a power of two so that batch
+        sizes in one bucket share compiled code; padding never shows in the result.
+
+        Returns:
+          An :class:`~jaxrt.IntersectionResult` with the batch shape of ``rays``. Distances, barycentrics
+          and the hit point are differentiable with respect to vertices and rays (the hit primitive is held
+          fixed; visibility changes are not differentiated).
+        """
+        if not isinstance(rays, Ray):
+            raise TypeError(f"Intersector.intersect: rays must be a jaxrt.Ray, got {type(rays).__name__}")
+        if not isinstance(structure, PrimitiveAccelerationStructure):
+            raise TypeError(
+                f"Intersector.intersect: structure must be an acceleration structure, got {type(structure).__name__}"
+            )
+        if self.backend == "gpu":
+            raise NotImplementedError("Intersector: backend='gpu' is not available in this version; use 'portable'")
+        shape = rays.shape
+        flat = rays.reshape(-1)
+        n = flat.origin.shape[0]
+        padded = _ray_bucket(n)
+        if padded != n:
+            flat = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, jnp.zeros((padded - n, *a.shape[1:]), a.dtype)]), flat)
+        result = _intersect_jit(self, flat, structure)
+        return jax.tree_util.tree_map(lambda a: a[:n].reshape(*shape, *a.shape[1:]), result)
+
+
+def _enabled(rays: Ray) -> jax.Array:
+    finite = jnp.all(jnp.isfinite(rays.origin), axis=-1) & jnp.all(jnp.isfinite(rays.direction), axis=-1)
+    nonzero = jnp.any(rays.direction != 0, axis=-1)
+    interval = (rays.min_distance <= rays.max_distance) & ~jnp.isnan(rays.min_distance) & ~jnp.isnan(rays.max_distance)
+    return finite & nonzero & interval & (rays.mask != 0)
+
+
+def _chunked_vmap(fn, args, chunk: int):
+    n = args[0].shape[0]
+    if n <= chunk:
+        return jax.vmap(fn)(*args)
+    split = [a.reshape(n // chunk, chunk, *a.shape[1:]) for a in args]
+    out = lax.map(lambda xs: jax.vmap(fn)(*xs), split)
+    return jax.tree_util.tree_map(lambda a: a.reshape(n, *a.shape[2:]), out)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _intersect_jit(intersector: Intersector, rays: Ray, structure: PrimitiveAccelerationStructure) -> IntersectionResult:
+    enabled = _enabled(rays)
+    unit_z = jnp.array([0.0, 0.0, 1.0], rays.direction.dtype)
+    origin = jnp.where(enabled[:, None], rays.origin, 0.0)
+    direction = jnp.where(enabled[:, None], rays.direction, unit_z)
+    t_min = jnp.where(enabled, rays.min_distance, 0.0)
+    t_max = jnp.where(enabled, rays.max_distance, 0.0)
+
+    detached = lax.stop_gradient
+    leaves = _TriangleLeaves(detached(structure.leaf_triangle), intersector._cull)
+    trace = functools.partial(
+        traverse,
+        detached(structure.node_lower),
+        detached(structure.node_upper),
+        structure.node_children,
+        leaves,
+        any_hit=intersector.accept_any_intersection,
+        stack_size=structure.max_depth,
+    )
+    chunk = GPU_CHUNK if jax.default_backend() == "gpu" else CPU_CHUNK
+    found = _chunked_vmap(trace, tuple(detached(a) for a in (origin, direction, t_min, t_max)) + (enabled,), chunk)
+
+    hit = found.leaf >= 0
+    leaf = jnp.maximum(found.leaf, 0)
+    fields: dict[str, Any] = {
+        "type": jnp.where(hit, int(IntersectionType.TRIANGLE), int(IntersectionType.NONE)).astype(jnp.int32),
+        "distance": None,
+        "primitive_id": jnp.where(hit, structure.leaf_primitive[leaf], -1),
+        "geometry_id": jnp.where(hit, structure.leaf_geometry[leaf], -1),
+    }
+    # Re-intersect the chosen triangle: exact values from the watertight test, gradients from a smooth one.
+    vertices = structure.leaf_triangle[leaf]
+    dummy = jnp.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]], vertices.dtype)
+    vertices = jnp.where(hit[:, None, None], vertices, dummy)
+    smooth_t, smooth_u, smooth_v = jax.vmap(triangle.smooth_hit)(origin, direction, vertices)
+
+    def attach(exact, smooth):
+        return jnp.where(hit, detached(exact) + (smooth - detached(smooth)), 0.0)
+
+    fields["distance"] = jnp.where(hit, attach(found.distance, smooth_t), jnp.inf)
+    if intersector.has("triangle_data"):
+        sheared = jax.vmap(triangle.shear_ray)(detached(origin), detached(direction))
+        u, v, clockwise = jax.vmap(triangle.barycentrics)(sheared, detached(vertices))
+        fields["triangle_barycentric_coord"] = jnp.stack([attach(u, smooth_u), attach(v, smooth_v)], axis=-1)
+        front = clockwise if intersector.front_facing_winding == "clockwise" else ~clockwise
+        fields["triangle_front_facing"] = hit & front
+    if intersector.has("stats"):
+        fields["nodes_visited"] = found.nodes_visited
+        fields["primitives_tested"] = found.primitives_tested
+        fields["stack_overflow"] = found.stack_overflow
+    return IntersectionResult(fields)

@@ -1,0 +1,1 @@
+"""Ray/primitive tests, one module per primitive. They know nothing of BVHs."""

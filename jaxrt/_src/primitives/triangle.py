@@ -1,0 +1,138 @@
+"""Ray/triangle intersection: the watertight test for traversal, a smooth one for gradients.
+
+Reference: Woop, Benthin, Wald, "Watertight Ray/Triangle Intersection", JCGT 2(1), 2013. The ray is sheared so
+that it runs along +z through the origin; the three 2D edge functions are then computed from the vertices
+alone, so an edge shared by two triangles gives the same value (with opposite sign) in both and no ray passes
+between them. Zero edge functions count as inside, so a ray through an edge or vertex hits (rather than
+misses) every triangle that shares it.
+
+Winding convention: seen from the ray origin looking along the ray, a triangle ``(v0, v1, v2)`` is clockwise
+when ``dot(cross(v1 - v0, v2 - v0), direction) > 0``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+
+class ShearedRay(NamedTuple):
+    """Per-ray constants of the watertight test (Woop et al. 2013, section 3)."""
+
+    origin: jax.Array
+    kx: jax.Array
+    ky: jax.Array
+    kz: jax.Array
+    shear: jax.Array  # (Sx, Sy, Sz)
+
+
+def _component(v: jax.Array, k: jax.Array) -> jax.Array:
+    """``v[..., k]`` for a per-ray axis ``k``, as selects (cheaper than a gather under vmap)."""
+    return jnp.where(k == 0, v[..., 0], jnp.where(k == 1, v[..., 1], v[..., 2]))
+
+
+def shear_ray(origin: jax.Array, direction: jax.Array) -> ShearedRay:
+    """Precompute the axis permutation and shear for one ray (``direction`` must be non-zero)."""
+    a = jnp.abs(direction)
+    kz = jnp.where(a[0] >= a[1], jnp.where(a[0] >= a[2], 0, 2), jnp.where(a[1] >= a[2], 1, 2)).astype(jnp.int32)
+    kx = (kz + 1) % 3
+    ky = (kx + 1) % 3
+    dz = _component(direction, kz)
+    # Swap kx and ky when the dominant component is negative, to keep the winding of the triangle.
+    kx, ky = jnp.where(dz < 0, ky, kx), jnp.where(dz < 0, kx, ky)
+    dz_safe = jnp.where(dz == 0, 1.0, dz)
+    shear = jnp.stack([_component(direction, kx) / dz_safe, _component(direction, ky) / dz_safe, 1.0 / dz_safe])
+    return ShearedRay(origin, kx, ky, kz, shear)
+
+
+class TriangleHit(NamedTuple):
+    hit: jax.Array
+    distance: jax.Array
+    u: jax.Array  # weight of v1
+    v: jax.Array  # weight of v2
+    clockwise: jax.Array  # winding seen from the ray (see the module docstring)
+
+
+def _edge_functions(ray: ShearedRay, vertices: jax.Array):
+    """Woop et al.'s sheared 2D edge functions (weights of v0, v1, v2) and the sheared z of each vertex."""
+    rel = vertices - ray.origin
+    az = _component(rel, ray.kz)
+    px = _component(rel, ray.kx) - ray.shear[0] * az
+    py = _component(rel, ray.ky) - ray.shear[1] * az
+    ax, bx, cx = px[..., 0], px[..., 1], px[..., 2]
+    ay, by, cy = py[..., 0], py[..., 1], py[..., 2]
+    e0 = cx * by - cy * bx
+    e1 = ax * cy - ay * cx
+    e2 = bx * ay - by * ax
+    return e0, e1, e2, ray.shear[2] * az
+
+
+def watertight(
+    ray: ShearedRay, t_min: jax.Array, t_max: jax.Array, vertices: jax.Array, cull: int = 0
+) -> TriangleHit:
+    """Watertight test of one ray against triangles ``vertices`` of shape ``(..., 3, 3)``.
+
+    Args:
+      ray: from :func:`shear_ray`.
+      t_min, t_max: the accepted distance interval (inclusive).
+      vertices: triangle vertices.
+      cull: static; 0 culls nothing, +1 culls clockwise triangles, -1 counterclockwise ones.
+
+    Returns:
+      A :class:`TriangleHit`; degenerate (zero-area after projection) triangles never hit. Distances of
+      misses are ``inf``, their barycentrics 0.
+    """
+    e0, e1, e2, sz = _edge_functions(ray, vertices)
+    negative = (e0 < 0) | (e1 < 0) | (e2 < 0)
+    positive = (e0 > 0) | (e1 > 0) | (e2 > 0)
+    det = e0 + e1 + e2
+    inside = ~(negative & positive) & (det != 0)
+    clockwise = det < 0
+    if cull == 1:
+        inside &= ~clockwise
+    elif cull == -1:
+        inside &= clockwise
+    t_scaled = e0 * sz[..., 0] + e1 * sz[..., 1] + e2 * sz[..., 2]
+    det_safe = jnp.where(det == 0, 1.0, det)
+    distance = t_scaled / det_safe
+    hit = inside & (distance >= t_min) & (distance <= t_max)
+    return TriangleHit(
+        hit=hit,
+        distance=jnp.where(hit, distance, jnp.inf),
+        u=jnp.where(hit, e1 / det_safe, 0.0),
+        v=jnp.where(hit, e2 / det_safe, 0.0),
+        clockwise=clockwise,
+    )
+
+
+def barycentrics(ray: ShearedRay, vertices: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """``(u, v, clockwise)`` of the ray's plane crossing, with no inside or distance test.
+
+    For a triangle already accepted by :func:`watertight` these are its barycentrics, recomputed without
+    carrying them through the traversal loop.
+    """
+    e0, e1, e2, _ = _edge_functions(ray, vertices)
+    det = e0 + e1 + e2
+    det_safe = jnp.where(det == 0, 1.0, det)
+    return e1 / det_safe, e2 / det_safe, det < 0
+
+
+def smooth_hit(origin: jax.Array, direction: jax.Array, vertices: jax.Array):
+    """Distance and barycentrics of the ray's plane hit, smooth in all inputs (Möller & Trumbore 1997).
+
+    Used only for gradients: the traversal picks the triangle with :func:`watertight`, then this recomputes
+    the hit differentiably. Callers must pass a non-degenerate triangle (replace misses by a dummy one).
+
+    Returns:
+      ``(distance, u, v)`` with ``hit = (1 - u - v) v0 + u v1 + v v2``.
+    """
+    v0, v1, v2 = vertices[0], vertices[1], vertices[2]
+    e1, e2 = v1 - v0, v2 - v0
+    p = jnp.cross(direction, e2)
+    det = jnp.dot(e1, p)
+    det = jnp.where(det == 0, 1.0, det)
+    s = origin - v0
+    q = jnp.cross(s, e1)
+    return jnp.dot(e2, q) / det, jnp.dot(s, p) / det, jnp.dot(direction, q) / det

@@ -1,0 +1,90 @@
+"""The intersection result pytree, shaped by the intersector's tags."""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Iterator, Mapping
+from typing import Any
+
+import jax
+
+__all__ = ["IntersectionType", "IntersectionResult", "FIELD_TAGS"]
+
+
+class IntersectionType(enum.IntEnum):
+    """What a ray hit (Metal's ``intersection_type``)."""
+
+    NONE = 0
+    """The ray missed (or was disabled)."""
+    TRIANGLE = 1
+    """A triangle."""
+    BOUNDING_BOX = 2
+    """A bounding-box primitive, accepted by its intersection function."""
+    CURVE = 3
+    """A curve segment."""
+
+
+#: The tag that adds each optional result field.
+FIELD_TAGS = {
+    "triangle_barycentric_coord": "triangle_data",
+    "triangle_front_facing": "triangle_data",
+    "curve_parameter": "curve_data",
+    "instance_id": "instancing",
+    "instance_count": "instancing",
+    "user_instance_id": "instancing",
+    "object_to_world_transform": "world_space_data",
+    "world_to_object_transform": "world_space_data",
+    "time": "primitive_motion",
+    "primitive_data": "primitive_data",
+    "nodes_visited": "stats",
+    "primitives_tested": "stats",
+    "stack_overflow": "stats",
+}
+
+
+@jax.tree_util.register_pytree_node_class
+class IntersectionResult(Mapping):
+    """Per-ray hit record; its fields depend on the intersector's tags.
+
+    Always present: ``type`` (int32 :class:`IntersectionType`), ``distance`` (``inf`` on a miss),
+    ``primitive_id`` and ``geometry_id`` (int32, ``-1`` on a miss). Tags add fields (see ``rt.tags``);
+    asking for a field whose tag is absent raises ``AttributeError`` naming the tag. Fields of misses are
+    zeros (``False`` for booleans). The result is a pytree and a read-only mapping of field names.
+    """
+
+    __slots__ = ("_fields",)
+
+    def __init__(self, fields: Mapping[str, Any]):
+        object.__setattr__(self, "_fields", dict(fields))
+
+    def __getattr__(self, name: str) -> Any:
+        fields = object.__getattribute__(self, "_fields")
+        if name in fields:
+            return fields[name]
+        if name in FIELD_TAGS:
+            raise AttributeError(f"IntersectionResult has no field {name!r}: add tags.{FIELD_TAGS[name]} to the Intersector")
+        raise AttributeError(f"IntersectionResult has no field {name!r}")
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        raise AttributeError("IntersectionResult is immutable")
+
+    def __getitem__(self, name: str) -> Any:
+        return self._fields[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._fields)
+
+    def __len__(self) -> int:
+        return len(self._fields)
+
+    def __repr__(self) -> str:
+        shapes = ", ".join(f"{k}={getattr(v, 'shape', '?')}" for k, v in self._fields.items())
+        return f"IntersectionResult({shapes})"
+
+    def tree_flatten(self):
+        keys = tuple(self._fields)
+        return tuple(self._fields[k] for k in keys), keys
+
+    @classmethod
+    def tree_unflatten(cls, keys, values):
+        return cls(dict(zip(keys, values)))
