@@ -61,6 +61,16 @@ def max_levels(n: int) -> Tag:
 
 
 KNOWN = frozenset(
-    ["triangle_data", "curve_data", "instancing", "max_levels", "world_space_data", "primitive_motion",
-     "instance_motion", "primitive_data", "user_instance_id", "stats"]
+    [
+        "triangle_data",
+        "curve_data",
+        "instancing",
+        "max_levels",
+        "world_space_data",
+        "primitive_motion",
+        "instance_motion",
+        "primitive_data",
+        "user_instance_id",
+        "stats",
+    ]
 )

@@ -97,17 +97,25 @@ class Intersector:
             if tag.name not in _SUPPORTED_TAGS:
                 raise NotImplementedError(f"Intersector: tags.{tag.name} is not supported in this version")
         if triangle_cull_mode not in _CULL_MODES:
-            raise ValueError(f"Intersector: triangle_cull_mode must be one of {_CULL_MODES}, got {triangle_cull_mode!r}")
+            raise ValueError(
+                f"Intersector: triangle_cull_mode must be one of {_CULL_MODES}, got {triangle_cull_mode!r}"
+            )
         if front_facing_winding not in _WINDINGS:
-            raise ValueError(f"Intersector: front_facing_winding must be one of {_WINDINGS}, got {front_facing_winding!r}")
+            raise ValueError(
+                f"Intersector: front_facing_winding must be one of {_WINDINGS}, got {front_facing_winding!r}"
+            )
         if backend not in _BACKENDS:
             raise ValueError(f"Intersector: backend must be one of {_BACKENDS}, got {backend!r}")
         if not isinstance(accept_any_intersection, bool):
             raise ValueError(f"Intersector: accept_any_intersection must be a bool, got {accept_any_intersection!r}")
         unsupported = dict(
-            geometry_types=geometry_types, curve_basis=curve_basis, curve_type=curve_type,
-            curve_control_point_count=curve_control_point_count, intersection_functions=intersection_functions,
-            filter=filter, max_hits=max_hits,
+            geometry_types=geometry_types,
+            curve_basis=curve_basis,
+            curve_type=curve_type,
+            curve_control_point_count=curve_control_point_count,
+            intersection_functions=intersection_functions,
+            filter=filter,
+            max_hits=max_hits,
         )
         for name, value in unsupported.items():
             if value is not None:
@@ -119,7 +127,13 @@ class Intersector:
         self.backend = backend
 
     def _key(self):
-        return (self.tags, self.accept_any_intersection, self.triangle_cull_mode, self.front_facing_winding, self.backend)
+        return (
+            self.tags,
+            self.accept_any_intersection,
+            self.triangle_cull_mode,
+            self.front_facing_winding,
+            self.backend,
+        )
 
     def __hash__(self) -> int:
         return hash(self._key())
@@ -164,16 +178,31 @@ class Intersector:
             raise TypeError(
                 f"Intersector.intersect: structure must be an acceleration structure, got {type(structure).__name__}"
             )
-        if self.backend == "gpu":
-            raise NotImplementedError("Intersector: backend='gpu' is not available in this version; use 'portable'")
+        _resolve_backend(self)  # raises early, outside jit, when the GPU backend is forced but unavailable
         shape = rays.shape
         flat = rays.reshape(-1)
         n = flat.origin.shape[0]
         padded = _ray_bucket(n)
         if padded != n:
-            flat = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, jnp.zeros((padded - n, *a.shape[1:]), a.dtype)]), flat)
+            flat = jax.tree_util.tree_map(
+                lambda a: jnp.concatenate([a, jnp.zeros((padded - n, *a.shape[1:]), a.dtype)]), flat
+            )
         result = _intersect_jit(self, flat, structure)
         return jax.tree_util.tree_map(lambda a: a[:n].reshape(*shape, *a.shape[1:]), result)
+
+
+def _resolve_backend(intersector: Intersector) -> str:
+    """``"portable"`` or ``"gpu"``: which traversal runs for this intersector on the default JAX backend."""
+    if intersector.backend == "portable":
+        return "portable"
+    from jaxrt._src.traversal import gpu
+
+    reason = gpu.unavailable_reason(intersector)
+    if reason is None:
+        return "gpu"
+    if intersector.backend == "gpu":
+        raise ValueError(f"Intersector: backend='gpu' cannot run: {reason}")
+    return "portable"
 
 
 def _enabled(rays: Ray) -> jax.Array:
@@ -192,15 +221,8 @@ def _chunked_vmap(fn, args, chunk: int):
     return jax.tree_util.tree_map(lambda a: a.reshape(n, *a.shape[2:]), out)
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def _intersect_jit(intersector: Intersector, rays: Ray, structure: PrimitiveAccelerationStructure) -> IntersectionResult:
-    enabled = _enabled(rays)
-    unit_z = jnp.array([0.0, 0.0, 1.0], rays.direction.dtype)
-    origin = jnp.where(enabled[:, None], rays.origin, 0.0)
-    direction = jnp.where(enabled[:, None], rays.direction, unit_z)
-    t_min = jnp.where(enabled, rays.min_distance, 0.0)
-    t_max = jnp.where(enabled, rays.max_distance, 0.0)
-
+def _trace_portable(intersector, structure, origin, direction, t_min, t_max, enabled):
+    """The vmapped stack traversal, in chunks of rays."""
     detached = lax.stop_gradient
     leaves = _TriangleLeaves(detached(structure.leaf_triangle), intersector._cull)
     trace = functools.partial(
@@ -213,7 +235,33 @@ def _intersect_jit(intersector: Intersector, rays: Ray, structure: PrimitiveAcce
         stack_size=structure.max_depth,
     )
     chunk = GPU_CHUNK if jax.default_backend() == "gpu" else CPU_CHUNK
-    found = _chunked_vmap(trace, tuple(detached(a) for a in (origin, direction, t_min, t_max)) + (enabled,), chunk)
+    return _chunked_vmap(trace, tuple(detached(a) for a in (origin, direction, t_min, t_max)) + (enabled,), chunk)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _intersect_jit(
+    intersector: Intersector, rays: Ray, structure: PrimitiveAccelerationStructure
+) -> IntersectionResult:
+    enabled = _enabled(rays)
+    unit_z = jnp.array([0.0, 0.0, 1.0], rays.direction.dtype)
+    origin = jnp.where(enabled[:, None], rays.origin, 0.0)
+    direction = jnp.where(enabled[:, None], rays.direction, unit_z)
+    t_min = jnp.where(enabled, rays.min_distance, 0.0)
+    t_max = jnp.where(enabled, rays.max_distance, 0.0)
+
+    detached = lax.stop_gradient
+    if _resolve_backend(intersector) == "gpu":
+        from jaxrt._src.traversal import gpu
+
+        found = gpu.trace(
+            structure,
+            *(detached(a) for a in (origin, direction, t_min, t_max)),
+            enabled,
+            any_hit=intersector.accept_any_intersection,
+            cull=intersector._cull,
+        )
+    else:
+        found = _trace_portable(intersector, structure, origin, direction, t_min, t_max, enabled)
 
     hit = found.leaf >= 0
     leaf = jnp.maximum(found.leaf, 0)

@@ -99,7 +99,9 @@ class Ray:
             try:
                 fields[name] = jnp.broadcast_to(fields[name], batch)
             except ValueError:
-                raise ValueError(f"Ray: {name} of shape {tuple(fields[name].shape)} does not broadcast to {batch}") from None
+                raise ValueError(
+                    f"Ray: {name} of shape {tuple(fields[name].shape)} does not broadcast to {batch}"
+                ) from None
         for name, value in fields.items():
             object.__setattr__(self, name, value)
 
@@ -110,4 +112,4 @@ class Ray:
 
     def reshape(self, *shape: int) -> Ray:
         """The same rays with another batch shape."""
-        return jax.tree_util.tree_map(lambda a: a.reshape(*shape, *a.shape[len(self.shape):]), self)
+        return jax.tree_util.tree_map(lambda a: a.reshape(*shape, *a.shape[len(self.shape) :]), self)

@@ -62,7 +62,9 @@ class IntersectionResult(Mapping):
         if name in fields:
             return fields[name]
         if name in FIELD_TAGS:
-            raise AttributeError(f"IntersectionResult has no field {name!r}: add tags.{FIELD_TAGS[name]} to the Intersector")
+            raise AttributeError(
+                f"IntersectionResult has no field {name!r}: add tags.{FIELD_TAGS[name]} to the Intersector"
+            )
         raise AttributeError(f"IntersectionResult has no field {name!r}")
 
     def __setattr__(self, name: str, value: Any) -> None:

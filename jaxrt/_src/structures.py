@@ -99,7 +99,9 @@ def _as_geometry_tuple(geometries: Any) -> tuple[TriangleGeometry, ...]:
     if isinstance(geometries, TriangleGeometry):
         geometries = (geometries,)
     if not isinstance(geometries, Sequence) or isinstance(geometries, str):
-        raise TypeError(f"build_primitive_structure: geometries must be a geometry or a sequence of them, got {type(geometries).__name__}")
+        raise TypeError(
+            f"build_primitive_structure: geometries must be a geometry or a sequence of them, got {type(geometries).__name__}"
+        )
     geometries = tuple(geometries)
     if not geometries:
         raise ValueError("build_primitive_structure: geometries is empty; a structure needs at least one geometry")

@@ -69,9 +69,7 @@ def _edge_functions(ray: ShearedRay, vertices: jax.Array):
     return e0, e1, e2, ray.shear[2] * az
 
 
-def watertight(
-    ray: ShearedRay, t_min: jax.Array, t_max: jax.Array, vertices: jax.Array, cull: int = 0
-) -> TriangleHit:
+def watertight(ray: ShearedRay, t_min: jax.Array, t_max: jax.Array, vertices: jax.Array, cull: int = 0) -> TriangleHit:
     """Watertight test of one ray against triangles ``vertices`` of shape ``(..., 3, 3)``.
 
     Args:

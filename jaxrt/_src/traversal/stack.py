@@ -33,7 +33,9 @@ class LeafTester(Protocol):
     def prepare(self, origin: jax.Array, direction: jax.Array) -> Any:
         """Per-ray constants for :meth:`__call__`."""
 
-    def __call__(self, context: Any, leaves: jax.Array, t_min: jax.Array, t_max: jax.Array) -> tuple[jax.Array, jax.Array]:
+    def __call__(
+        self, context: Any, leaves: jax.Array, t_min: jax.Array, t_max: jax.Array
+    ) -> tuple[jax.Array, jax.Array]:
         """``(hit, distance)`` for leaves ``(2,)``, accepting hits in ``[t_min, t_max]``."""
 
 
