@@ -89,4 +89,4 @@ class IntersectionResult(Mapping):
 
     @classmethod
     def tree_unflatten(cls, keys, values):
-        return cls(dict(zip(keys, values)))
+        return cls(dict(zip(keys, values, strict=True)))
