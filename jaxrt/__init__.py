@@ -9,7 +9,7 @@ Examples:
   (True, 1.0)
 """
 
-from jaxrt import tags
+from jaxrt import shading, tags
 from jaxrt._src.geometry import TriangleGeometry
 from jaxrt._src.intersector import Intersector
 from jaxrt._src.numerics import offset_ray_origin
@@ -29,5 +29,6 @@ __all__ = [
     "build_primitive_structure",
     "offset_ray_origin",
     "refit",
+    "shading",
     "tags",
 ]
