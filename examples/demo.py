@@ -19,17 +19,48 @@ import jaxrt as rt
 def icosphere(center, radius, subdivisions=3):
     """A closed, nearly uniform sphere mesh: a subdivided icosahedron projected onto the sphere."""
     t = (1.0 + 5**0.5) / 2.0
-    v = [(-1, t, 0), (1, t, 0), (-1, -t, 0), (1, -t, 0), (0, -1, t), (0, 1, t),
-         (0, -1, -t), (0, 1, -t), (t, 0, -1), (t, 0, 1), (-t, 0, -1), (-t, 0, 1)]
-    f = [(0, 11, 5), (0, 5, 1), (0, 1, 7), (0, 7, 10), (0, 10, 11), (1, 5, 9), (5, 11, 4), (11, 10, 2), (10, 7, 6),
-         (7, 1, 8), (3, 9, 4), (3, 4, 2), (3, 2, 6), (3, 6, 8), (3, 8, 9), (4, 9, 5), (2, 4, 11), (6, 2, 10),
-         (8, 6, 7), (9, 8, 1)]
+    v = [
+        (-1, t, 0),
+        (1, t, 0),
+        (-1, -t, 0),
+        (1, -t, 0),
+        (0, -1, t),
+        (0, 1, t),
+        (0, -1, -t),
+        (0, 1, -t),
+        (t, 0, -1),
+        (t, 0, 1),
+        (-t, 0, -1),
+        (-t, 0, 1),
+    ]
+    f = [
+        (0, 11, 5),
+        (0, 5, 1),
+        (0, 1, 7),
+        (0, 7, 10),
+        (0, 10, 11),
+        (1, 5, 9),
+        (5, 11, 4),
+        (11, 10, 2),
+        (10, 7, 6),
+        (7, 1, 8),
+        (3, 9, 4),
+        (3, 4, 2),
+        (3, 2, 6),
+        (3, 6, 8),
+        (3, 8, 9),
+        (4, 9, 5),
+        (2, 4, 11),
+        (6, 2, 10),
+        (8, 6, 7),
+        (9, 8, 1),
+    ]
     vertices = [np.array(p, float) / np.linalg.norm(p) for p in v]
     faces = f
     for _ in range(subdivisions):
         cache, new_faces = {}, []
 
-        def midpoint(a, b):
+        def midpoint(a, b, cache=cache):
             key = (min(a, b), max(a, b))
             if key not in cache:
                 m = vertices[a] + vertices[b]
@@ -46,8 +77,9 @@ def icosphere(center, radius, subdivisions=3):
 
 def torus(center, major, minor, nu=96, nv=48):
     """A closed torus around the y axis."""
-    u, v = np.meshgrid(np.linspace(0, 2 * np.pi, nu, endpoint=False), np.linspace(0, 2 * np.pi, nv, endpoint=False),
-                       indexing="ij")
+    u, v = np.meshgrid(
+        np.linspace(0, 2 * np.pi, nu, endpoint=False), np.linspace(0, 2 * np.pi, nv, endpoint=False), indexing="ij"
+    )
     x = (major + minor * np.cos(v)) * np.cos(u)
     z = (major + minor * np.cos(v)) * np.sin(u)
     y = minor * np.sin(v)
@@ -82,8 +114,13 @@ def ground(size, cells=32):
 
 def scene():
     """The demo scene: spheres, a torus and boxes on a ground plane; returns (vertices, faces) per object."""
-    objects = [ground(8.0), icosphere((-1.6, 1.0, 0.0), 1.0, 5), torus((1.4, 0.45, 0.6), 0.9, 0.45),
-               box((0.6, 0.6, -2.0), (1.2, 1.2, 1.2), 0.5), icosphere((2.6, 0.5, -1.2), 0.5, 4)]
+    objects = [
+        ground(8.0),
+        icosphere((-1.6, 1.0, 0.0), 1.0, 5),
+        torus((1.4, 0.45, 0.6), 0.9, 0.45),
+        box((0.6, 0.6, -2.0), (1.2, 1.2, 1.2), 0.5),
+        icosphere((2.6, 0.5, -1.2), 0.5, 4),
+    ]
     for k in range(6):
         objects.append(box((-3.2 + 1.0 * k, 0.15 + 0.15 * k, -3.6), (0.8, 0.3 + 0.3 * k, 0.8), 0.2 * k))
     return objects
@@ -95,7 +132,7 @@ def brute_force_float64(origins, directions, triangles):
     v0, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
     best_t, best_i = np.full(len(o), np.inf), np.full(len(o), -1)
     for start in range(0, len(o), 64):
-        oo, dd = o[start:start + 64, None], d[start:start + 64, None]
+        oo, dd = o[start : start + 64, None], d[start : start + 64, None]
         p = np.cross(dd, e2)
         det = np.einsum("tk,rtk->rt", e1, p)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -106,7 +143,10 @@ def brute_force_float64(origins, directions, triangles):
             t = np.einsum("tk,rtk->rt", e2, q) / det
         ok = (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0) & (det != 0)
         t = np.where(ok, t, np.inf)
-        best_t[start:start + 64], best_i[start:start + 64] = t.min(1), np.where(np.isfinite(t.min(1)), t.argmin(1), -1)
+        best_t[start : start + 64], best_i[start : start + 64] = (
+            t.min(1),
+            np.where(np.isfinite(t.min(1)), t.argmin(1), -1),
+        )
     return best_t, best_i
 
 
@@ -137,7 +177,9 @@ def main(argv=None) -> dict:
     n_tris = sum(g.primitive_count for g in geometries)
     structure, build_first, build = timed(rt.build_primitive_structure, geometries)
 
-    rays = rt.shading.pinhole_rays(args.width, args.height, eye=(0.5, 3.0, 7.5), target=(0.0, 0.7, -0.8), fov_degrees=45)
+    rays = rt.shading.pinhole_rays(
+        args.width, args.height, eye=(0.5, 3.0, 7.5), target=(0.0, 0.7, -0.8), fov_degrees=45
+    )
     intersector = rt.Intersector(rt.tags.triangle_data)
     hits, trace_first, trace = timed(intersector.intersect, rays, structure)
 
@@ -145,7 +187,9 @@ def main(argv=None) -> dict:
     vertices = np.concatenate([v for v, _ in objects]).astype(np.float32)
     vertex_offsets = np.cumsum([0] + [len(v) for v, _ in objects])
     faces = np.concatenate([f + vertex_offsets[i] for i, (_, f) in enumerate(objects)]).astype(np.int32)
-    global_id = jnp.where(hits.type != 0, jnp.asarray(offsets)[jnp.maximum(hits.geometry_id, 0)] + hits.primitive_id, -1)
+    global_id = jnp.where(
+        hits.type != 0, jnp.asarray(offsets)[jnp.maximum(hits.geometry_id, 0)] + hits.primitive_id, -1
+    )
     normals = rt.shading.triangle_normals(jnp.asarray(vertices), jnp.asarray(faces), global_id)
     normals = jnp.where(jnp.sum(normals * rays.direction, -1, keepdims=True) > 0, -normals, normals)
     points = rt.shading.hit_points(rays, hits)
@@ -185,7 +229,9 @@ def main(argv=None) -> dict:
     rel = np.abs(got_t[both] - ref_t[both]) / np.maximum(ref_t[both], 1e-30)
     # A different triangle at the same float64 distance (a shared edge or vertex) is a tie, not an error.
     mismatch = np.flatnonzero(both & (got_i != ref_i))
-    ties = np.array([brute_force_float64(o[k:k + 1], d[k:k + 1], vertices[faces][got_i[k]][None])[0][0] for k in mismatch])
+    ties = np.array(
+        [brute_force_float64(o[k : k + 1], d[k : k + 1], vertices[faces][got_i[k]][None])[0][0] for k in mismatch]
+    )
     ties = np.isclose(ties, ref_t[mismatch], rtol=1e-6, atol=0)
     summary = {
         "backend": jax.default_backend(),
@@ -203,15 +249,19 @@ def main(argv=None) -> dict:
         "max_rel_distance_error": float(rel.max()) if rel.size else 0.0,
         "image": str(out),
     }
-    print(f"jaxrt demo on {summary['backend']}: {n_tris} triangles, {args.width}x{args.height} pixels, "
-          f"{args.samples} AO rays/pixel -> {out}")
+    print(
+        f"jaxrt demo on {summary['backend']}: {n_tris} triangles, {args.width}x{args.height} pixels, "
+        f"{args.samples} AO rays/pixel -> {out}"
+    )
     print(f"  build           {summary['build_ms']:8.1f} ms   {summary['build_mprims_per_s']:7.2f} Mprims/s")
     print(f"  primary rays    {summary['primary_mrays_per_s']:8.3f} Mrays/s (closest hit, triangle_data)")
     print(f"  AO rays         {summary['ao_mrays_per_s']:8.3f} Mrays/s (any hit)")
     print(f"  compile         {summary['compile_s']:8.1f} s (first calls)")
-    print(f"  accuracy vs float64 brute force on {len(pick)} rays: {summary['hit_miss_mismatches']} hit/miss and "
-          f"{summary['primitive_mismatches']} primitive mismatches, max relative distance error "
-          f"{summary['max_rel_distance_error']:.2e}")
+    print(
+        f"  accuracy vs float64 brute force on {len(pick)} rays: {summary['hit_miss_mismatches']} hit/miss and "
+        f"{summary['primitive_mismatches']} primitive mismatches, max relative distance error "
+        f"{summary['max_rel_distance_error']:.2e}"
+    )
     return summary
 
 

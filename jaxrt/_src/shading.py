@@ -123,7 +123,13 @@ def ambient_occlusion(
     directions = jax.vmap(lambda k: cosine_hemisphere(k, normals))(keys)
     origin = offset_ray_origin(points, normals)
     mask = jnp.uint32(0xFFFFFFFF) if valid is None else jnp.where(valid, jnp.uint32(0xFFFFFFFF), jnp.uint32(0))
-    rays = Ray(jnp.broadcast_to(origin, directions.shape), directions, 0.0, radius, jnp.broadcast_to(mask, directions.shape[:-1]))
+    rays = Ray(
+        jnp.broadcast_to(origin, directions.shape),
+        directions,
+        0.0,
+        radius,
+        jnp.broadcast_to(mask, directions.shape[:-1]),
+    )
     occluded = Intersector(accept_any_intersection=True).intersect(rays, structure).type != 0
     visibility = 1.0 - jnp.mean(occluded.astype(points.dtype), axis=0)
     return visibility if valid is None else jnp.where(valid, visibility, 0.0)

@@ -61,12 +61,19 @@ def _edge_functions(ray: ShearedRay, vertices: jax.Array):
     az = _component(rel, ray.kz)
     px = _component(rel, ray.kx) - ray.shear[0] * az
     py = _component(rel, ray.ky) - ray.shear[1] * az
-    ax, bx, cx = px[..., 0], px[..., 1], px[..., 2]
-    ay, by, cy = py[..., 0], py[..., 1], py[..., 2]
-    e0 = cx * by - cy * bx
-    e1 = ax * cy - ay * cx
-    e2 = bx * ay - by * ax
-    return e0, e1, e2, ray.shear[2] * az
+    # Edge i runs from u = vertex i+1 to w = vertex i+2; its function is w.x u.y - w.y u.x. A shared edge must
+    # give bitwise opposite values in its two triangles, but the compiler may fuse one product of that
+    # difference into an FMA, which breaks its antisymmetry (a ray exactly through the edge then sees the same
+    # small sign in both triangles and leaks). So every edge is evaluated with its endpoints in one canonical
+    # order, by one expression for all three edges, and its sign restored afterwards.
+    ux, uy = jnp.roll(px, -1, axis=-1), jnp.roll(py, -1, axis=-1)
+    wx, wy = jnp.roll(px, -2, axis=-1), jnp.roll(py, -2, axis=-1)
+    swap = (ux > wx) | ((ux == wx) & (uy > wy))
+    first_x, first_y = jnp.where(swap, wx, ux), jnp.where(swap, wy, uy)
+    second_x, second_y = jnp.where(swap, ux, wx), jnp.where(swap, uy, wy)
+    e = second_x * first_y - second_y * first_x
+    e = jnp.where(swap, -e, e)
+    return e[..., 0], e[..., 1], e[..., 2], ray.shear[2] * az
 
 
 def watertight(ray: ShearedRay, t_min: jax.Array, t_max: jax.Array, vertices: jax.Array, cull: int = 0) -> TriangleHit:
