@@ -9,8 +9,8 @@ Examples:
   (True, 1.0)
 """
 
-from jaxrt import shading, tags
-from jaxrt._src.geometry import TriangleGeometry
+from jaxrt import intersection_functions, shading, tags
+from jaxrt._src.geometry import BoundingBoxGeometry, TriangleGeometry
 from jaxrt._src.intersector import Intersector
 from jaxrt._src.numerics import offset_ray_origin
 from jaxrt._src.ray import Ray
@@ -20,6 +20,7 @@ from jaxrt._src.structures import PrimitiveAccelerationStructure, build_primitiv
 __version__ = "0.1.0"
 
 __all__ = [
+    "BoundingBoxGeometry",
     "IntersectionResult",
     "IntersectionType",
     "Intersector",
@@ -27,6 +28,7 @@ __all__ = [
     "Ray",
     "TriangleGeometry",
     "build_primitive_structure",
+    "intersection_functions",
     "offset_ray_origin",
     "refit",
     "shading",

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["TriangleGeometry", "Geometry", "float_dtype"]
+__all__ = ["TriangleGeometry", "BoundingBoxGeometry", "float_dtype"]
 
 
 def float_dtype() -> jnp.dtype:
@@ -147,4 +147,77 @@ class TriangleGeometry:
         return f"TriangleGeometry(vertices={tuple(self.vertices.shape)}, triangles={self.primitive_count}, opaque={self.opaque})"
 
 
-Geometry = TriangleGeometry
+@jax.tree_util.register_pytree_node_class
+class BoundingBoxGeometry:
+    """Axis-aligned boxes whose hits come from an intersection function (Metal's bounding-box geometry).
+
+    The traversal finds the boxes a ray enters and calls the intersector's intersection function for this
+    geometry on each, nearest box first; the function decides whether and where the ray hits the primitive
+    inside the box (see ``rt.intersection_functions`` for analytic spheres, disks and capped cylinders).
+
+    Args:
+      lower, upper: ``(N, 3)`` float box corners, ``lower <= upper`` componentwise.
+      primitive_data: optional pytree whose leaves have leading dimension ``N`` (given to the function).
+      opaque: static; kept for Metal parity (every box hit is decided by its function).
+
+    Raises:
+      TypeError: a non-float dtype. ValueError: wrong shapes, empty geometry, non-finite corners, an
+        inverted box (``lower > upper``), or primitive data whose leading dimension is not ``N``.
+
+    Examples:
+      >>> import jaxrt as rt
+      >>> rt.BoundingBoxGeometry([[-1., -1, -1]], [[1., 1, 1]]).primitive_count
+      1
+    """
+
+    kind = "bounding_box"
+
+    def __init__(self, lower: Any, upper: Any, *, primitive_data: Any = None, opaque: bool = True):
+        owner = "BoundingBoxGeometry"
+        lower = _as_float_array(lower, "lower", owner)
+        upper = _as_float_array(upper, "upper", owner)
+        for name, value in (("lower", lower), ("upper", upper)):
+            if value.ndim != 2 or value.shape[1] != 3:
+                raise ValueError(f"{owner}: {name} must have shape (N, 3), got {tuple(value.shape)}")
+        if lower.shape != upper.shape:
+            raise ValueError(f"{owner}: lower {tuple(lower.shape)} and upper {tuple(upper.shape)} differ in shape")
+        if lower.shape[0] == 0:
+            raise ValueError(f"{owner}: lower is empty (shape {tuple(lower.shape)}); a geometry needs a box")
+        _check_finite(lower, "lower", owner)
+        _check_finite(upper, "upper", owner)
+        if _is_concrete(lower) and _is_concrete(upper):
+            inverted = np.asarray(lower) > np.asarray(upper)
+            if inverted.any():
+                box, axis = (int(i) for i in np.argwhere(inverted)[0])
+                raise ValueError(
+                    f"{owner}: box {box} is inverted on axis {axis}: lower {float(lower[box, axis])} > "
+                    f"upper {float(upper[box, axis])}"
+                )
+        if primitive_data is not None:
+            _check_primitive_data(primitive_data, lower.shape[0], owner)
+        self.lower = lower
+        self.upper = upper
+        self.primitive_data = primitive_data
+        self.opaque = bool(opaque)
+
+    @property
+    def primitive_count(self) -> int:
+        """Number of boxes (static)."""
+        return int(self.lower.shape[0])
+
+    def bounds(self) -> tuple[jax.Array, jax.Array]:
+        """``(N, 3)`` lower and upper corners of each primitive's box."""
+        return self.lower, self.upper
+
+    def tree_flatten(self):
+        return (self.lower, self.upper, self.primitive_data), (self.opaque,)
+
+    @classmethod
+    def tree_unflatten(cls, aux, children):
+        obj = object.__new__(cls)
+        obj.lower, obj.upper, obj.primitive_data = children
+        (obj.opaque,) = aux
+        return obj
+
+    def __repr__(self) -> str:
+        return f"BoundingBoxGeometry(boxes={self.primitive_count}, opaque={self.opaque})"
