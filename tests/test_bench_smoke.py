@@ -1,0 +1,93 @@
+"""Smoke tests of ``python -m jaxrt.bench`` (tiny sizes) and of the mesh loader."""
+
+from __future__ import annotations
+
+import gzip
+import json
+
+import numpy as np
+import pytest
+
+from jaxrt._src.io import load_mesh
+from jaxrt.bench import main
+from jaxrt.bench.rays import diffuse_rays, primary_rays, shadow_rays
+from jaxrt.bench.scenes import noisy_sphere
+
+
+def test_quick_bench_writes_expected_json_and_jaxrt_matches_reference(tmp_path):
+    path = tmp_path / "bench.json"
+    assert main(["--quick", "--scenes", "sphere", "--quiet", "--json", str(path)]) == 0
+    results = json.loads(path.read_text())
+    assert {"machine", "config", "scenes", "total_s"} <= set(results)
+    assert {"jax_version", "backend", "device_kind", "cpu_count"} <= set(results["machine"])
+    (scene,) = results["scenes"]
+    assert scene["scene"] == "sphere" and scene["triangles"] > 0
+    assert {"first_s", "compile_s", "median_s", "mprims_s"} <= set(scene["build"]["jaxrt"])
+    assert set(scene["rays"]) == {"primary", "diffuse"}
+    for kind, entry in scene["rays"].items():
+        assert entry["reference"]["hits"] > 0, kind
+        ours = entry["tracers"]["jaxrt"]
+        assert ours["closest"]["mrays_s"] > 0 and ours["any_hit"]["mrays_s"] > 0
+        error = ours["error"]
+        assert error["rays"] == entry["reference"]["rays"]
+        assert error["hit_mismatch"] == 0, (kind, error)
+        assert error["primitive_mismatch"] == 0, (kind, error)
+        assert error["any_hit_mismatch"] == 0, (kind, error)
+        assert error["distance_max_rel"] < 1e-4, (kind, error)
+        if "embree" in entry["tracers"]:
+            assert {"closest", "any_hit", "error"} <= set(entry["tracers"]["embree"])
+
+
+def test_ray_sets_shapes_and_conventions():
+    scene = noisy_sphere(500, seed=1)
+    primary = primary_rays(scene.vertices, 64)
+    assert primary.origin.shape == (64, 3) and primary.direction.dtype == np.float32
+    # Scanline order: the first ray points to the top-left corner, the last row is the bottom one.
+    assert primary.direction[0, 1] > primary.direction[-1, 1]
+    for batch in (
+        primary,
+        diffuse_rays(scene.vertices, scene.indices, 64),
+        shadow_rays(scene.vertices, scene.indices, 64),
+    ):
+        np.testing.assert_allclose(np.linalg.norm(batch.direction, axis=1), 1.0, rtol=1e-5)
+    assert np.isfinite(shadow_rays(scene.vertices, scene.indices, 8).max_distance).all()
+
+
+def test_noisy_sphere_is_closed():
+    scene = noisy_sphere(300)
+    edges = np.sort(scene.indices[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    assert (counts == 2).all()
+
+
+_OBJ = "# a quad and a triangle\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0 0 1\nf 1 2 3 4\nf 1 2 5\n"
+
+
+def test_load_mesh_reads_obj_and_gzipped_obj(tmp_path):
+    pytest.importorskip("trimesh")
+    plain = tmp_path / "tiny.obj"
+    plain.write_text(_OBJ)
+    packed = tmp_path / "tiny.obj.gz"
+    packed.write_bytes(gzip.compress(_OBJ.encode()))
+    for path in (plain, packed):
+        vertices, indices = load_mesh(path)
+        assert vertices.dtype == np.float32 and vertices.shape == (5, 3)
+        assert indices.dtype == np.int32 and indices.shape == (3, 3)
+        assert indices.min() >= 0 and indices.max() < len(vertices)
+        # The quad is split into two triangles covering the unit square.
+        areas = np.linalg.norm(np.cross(*(vertices[indices[:, k]] - vertices[indices[:, 0]] for k in (1, 2))), axis=1)
+        np.testing.assert_allclose(sorted(areas / 2), [0.5, 0.5, 0.5])
+
+
+def test_load_mesh_errors(tmp_path):
+    pytest.importorskip("trimesh")
+    with pytest.raises(FileNotFoundError, match="no such file"):
+        load_mesh(tmp_path / "missing.obj")
+    bad = tmp_path / "noext"
+    bad.write_text(_OBJ)
+    with pytest.raises(ValueError, match="no extension"):
+        load_mesh(bad)
+    huge = tmp_path / "huge.obj"
+    huge.write_text("v 0 0 0\nv 1e39 0 0\nv 0 1 0\nf 1 2 3\n")
+    with pytest.raises(ValueError, match="not finite in float32"):
+        load_mesh(huge)
