@@ -233,7 +233,7 @@ def traverse_refill(
         retire = state.done & (lane_ray >= 0)
         target = jnp.where(retire, lane_ray, n)
         out = jax.tree_util.tree_map(lambda o, v: o.at[target].set(v, mode="drop"), out, _result(state))
-        new_ray = next_ray + jnp.cumsum(retire.astype(jnp.int32)) - 1
+        new_ray = next_ray + jnp.cumsum(retire, dtype=jnp.int32) - 1
         fresh = retire & (new_ray < n)
         lane_ray = jnp.where(retire, jnp.where(fresh, new_ray, -1), lane_ray)
         source = jnp.clip(new_ray, 0, n - 1)
@@ -242,7 +242,7 @@ def traverse_refill(
             lambda new, old: jnp.where(fresh.reshape(-1, *([1] * (old.ndim - 1))), new, old), incoming, lane_constants
         )
         state = load(state, source, fresh)
-        next_ray = jnp.minimum(next_ray + jnp.sum(retire.astype(jnp.int32)), n)
+        next_ray = jnp.minimum(next_ray + jnp.sum(retire, dtype=jnp.int32), n)
         return lane_ray, lane_constants, state, next_ray, out
 
     carry = (lane_ray, lane_constants, state, jnp.int32(width), out)
