@@ -9,7 +9,7 @@ Examples:
   (True, 1.0)
 """
 
-from jaxrt import intersection_functions, shading, tags
+from jaxrt import intersection_functions, io, shading, tags
 from jaxrt._src.geometry import BoundingBoxGeometry, TriangleGeometry
 from jaxrt._src.intersector import Intersector
 from jaxrt._src.numerics import offset_ray_origin
@@ -29,6 +29,7 @@ __all__ = [
     "TriangleGeometry",
     "build_primitive_structure",
     "intersection_functions",
+    "io",
     "offset_ray_origin",
     "refit",
     "shading",

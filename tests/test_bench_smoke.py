@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from jaxrt._src.io import load_mesh
+from jaxrt.io import load_mesh
 from jaxrt.bench import main
 from jaxrt.bench.rays import diffuse_rays, primary_rays, shadow_rays
 from jaxrt.bench.scenes import noisy_sphere

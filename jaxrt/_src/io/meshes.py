@@ -47,7 +47,7 @@ def load_mesh(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
 
     Examples:
       >>> import pathlib, tempfile
-      >>> from jaxrt._src.io import load_mesh
+      >>> from jaxrt.io import load_mesh
       >>> path = pathlib.Path(tempfile.mkdtemp()) / "tri.obj"
       >>> _ = path.write_text("v 0 0 0\\nv 1 0 0\\nv 0 1 0\\nf 1 2 3\\n")
       >>> vertices, indices = load_mesh(path)
