@@ -276,7 +276,11 @@ def _intersect_jit(
     vertices = structure.leaf_triangle[leaf]
     dummy = jnp.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]], vertices.dtype)
     vertices = jnp.where(hit[:, None, None], vertices, dummy)
-    smooth_t, smooth_u, smooth_v = jax.vmap(triangle.smooth_hit)(origin, direction, vertices)
+    # Misses also get a dummy ray: with their own (finite but possibly huge) origin the smooth formula can
+    # overflow, and its zero cotangent times inf would be a NaN gradient.
+    smooth_origin = jnp.where(hit[:, None], origin, 0.0)
+    smooth_direction = jnp.where(hit[:, None], direction, unit_z)
+    smooth_t, smooth_u, smooth_v = jax.vmap(triangle.smooth_hit)(smooth_origin, smooth_direction, vertices)
 
     def attach(exact, smooth):
         return jnp.where(hit, detached(exact) + (smooth - detached(smooth)), 0.0)

@@ -1,31 +1,66 @@
-"""Small, differentiable shading helpers: camera rays, hit points, normals, Lambert shading, ambient occlusion.
+"""Small, differentiable shading helpers for rendering experiments.
 
-All are plain JAX functions (jit/vmap/grad friendly); randomness comes from an explicit ``jax.random`` key.
+Camera rays, hit points, geometric and interpolated normals, per-vertex attributes and textures at hits,
+Lambert, Phong and Blinn-Phong shading, ambient occlusion and a one-bounce diffuse estimator.
+
+All are plain JAX functions (jit/vmap/grad friendly) on arrays of any batch shape; randomness comes from an
+explicit ``jax.random`` key, so a fixed key gives a fixed (differentiable) noise pattern. Gradients of
+anything computed from hits hold the hit primitive fixed: see ``docs/differentiable.md``.
+
+Conventions: directions "towards the light" and "towards the viewer" point away from the surface; normals
+are unit vectors; barycentrics are ``(u, v)`` with ``point = (1 - u - v) v0 + u v1 + v v2`` (the
+intersector's ``triangle_barycentric_coord``); misses (``primitive_id == -1``) give zeros, never NaN.
 """
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 
+from jaxrt import tags
 from jaxrt._src.intersector import Intersector
 from jaxrt._src.numerics import offset_ray_origin
 from jaxrt._src.ray import Ray
 from jaxrt._src.result import IntersectionResult
+from jaxrt._src.structures import PrimitiveAccelerationStructure
 
 __all__ = [
     "pinhole_rays",
     "hit_points",
     "triangle_normals",
+    "vertex_normals",
+    "interpolate",
+    "texture_lookup",
+    "face_forward",
     "lambert",
+    "phong",
+    "blinn_phong",
     "cosine_hemisphere",
     "ambient_occlusion",
+    "one_bounce_diffuse",
 ]
 
 
 def _normalize(v: jax.Array) -> jax.Array:
     # The epsilon keeps the gradient finite for zero vectors.
     return v / jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True) + 1e-30)
+
+
+def _dot(a: jax.Array, b: jax.Array) -> jax.Array:
+    return jnp.sum(a * b, axis=-1)
+
+
+def _safe_power(x: jax.Array, exponent: Any) -> jax.Array:
+    """``max(x, 0) ** exponent`` whose gradient is 0 (not NaN) where ``x <= 0``, also w.r.t. the exponent.
+
+    Prevents: the NaN of ``0 ** s * log(0)`` (the derivative with respect to ``s`` at ``x = 0``) and the
+    ``inf`` of ``s * 0 ** (s - 1)`` for ``s < 1``.
+    """
+    positive = x > 0
+    return jnp.where(positive, jnp.where(positive, x, 1.0) ** exponent, 0.0)
 
 
 def pinhole_rays(
@@ -48,7 +83,14 @@ def pinhole_rays(
         pixel instead of the pixel centre (antialiasing).
 
     Returns:
-      A :class:`~jaxrt.Ray` batch with unit directions; row 0 is the top of the image.
+      A :class:`~jaxrt.Ray` batch with unit directions; row 0 is the top of the image. The rays are
+      differentiable with respect to ``eye``, ``target`` and ``up``.
+
+    Examples:
+      >>> import jaxrt as rt
+      >>> rays = rt.shading.pinhole_rays(4, 3, eye=(0, 0, 5), target=(0, 0, 0))
+      >>> rays.shape, [round(float(x), 3) for x in rays.direction[1, 2]]
+      ((3, 4), [0.137, 0.0, -0.991])
     """
     eye = jnp.asarray(eye, jnp.float32)
     forward = _normalize(jnp.asarray(target, jnp.float32) - eye)
@@ -66,27 +108,242 @@ def pinhole_rays(
 
 
 def hit_points(rays: Ray, result: IntersectionResult) -> jax.Array:
-    """``origin + distance * direction`` for hits, 0 for misses (no NaN, differentiable)."""
+    """``origin + distance * direction`` for hits, 0 for misses (no NaN, differentiable).
+
+    Args:
+      rays: the rays that were traced.
+      result: their intersection result.
+
+    Returns:
+      ``(..., 3)`` hit points; their gradient holds the hit primitive fixed, and is 0 for misses.
+    """
     hit = result.type != 0
     distance = jnp.where(hit, result.distance, 0.0)
     return jnp.where(hit[..., None], rays.origin + distance[..., None] * rays.direction, 0.0)
 
 
 def triangle_normals(vertices: jax.Array, indices: jax.Array, primitive_id: jax.Array) -> jax.Array:
-    """Unit geometric normals ``normalize(cross(v1 - v0, v2 - v0))`` of triangles ``primitive_id`` (-1 gives 0)."""
+    """Unit geometric normals ``normalize(cross(v1 - v0, v2 - v0))`` of triangles ``primitive_id`` (-1 gives 0).
+
+    Args:
+      vertices: ``(V, 3)`` vertex positions.
+      indices: ``(T, 3)`` vertex indices of the triangles.
+      primitive_id: ``(...)`` triangle index per hit, -1 for a miss.
+
+    Returns:
+      ``(..., 3)`` unit normals (0 for misses and zero-area triangles).
+    """
     tri = vertices[indices[jnp.maximum(primitive_id, 0)]]
     n = _normalize(jnp.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :]))
     return jnp.where((primitive_id >= 0)[..., None], n, 0.0)
 
 
+def vertex_normals(vertices: jax.Array, indices: jax.Array) -> jax.Array:
+    """Smooth per-vertex normals: the area-weighted mean of the normals of the triangles around each vertex.
+
+    Interpolate them at hits with :func:`interpolate` and renormalise for smooth (Phong) shading normals.
+
+    Args:
+      vertices: ``(V, 3)`` vertex positions.
+      indices: ``(T, 3)`` vertex indices; the winding decides the side the normals point to.
+
+    Returns:
+      ``(V, 3)`` unit normals (0 for vertices used by no triangle). Differentiable in ``vertices``.
+
+    Examples:
+      >>> import jaxrt as rt
+      >>> n = rt.shading.vertex_normals(jnp.array([[0., 0, 0], [1, 0, 0], [0, 1, 0]]), jnp.array([[0, 1, 2]]))
+      >>> n.tolist()
+      [[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]]
+    """
+    vertices = jnp.asarray(vertices)
+    indices = jnp.asarray(indices)
+    tri = vertices[indices]
+    face = jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = twice the area
+    summed = jnp.zeros_like(vertices).at[indices.reshape(-1)].add(jnp.repeat(face, 3, axis=0))
+    return _normalize(summed)
+
+
+def interpolate(
+    attribute: jax.Array, indices: jax.Array, primitive_id: jax.Array, barycentrics: jax.Array
+) -> jax.Array:
+    """A per-vertex attribute at hits: ``(1 - u - v) a[i0] + u a[i1] + v a[i2]`` of the hit triangle.
+
+    Args:
+      attribute: ``(V,)`` or ``(V, C)`` values per vertex (normals, UVs, colours, ...).
+      indices: ``(T, 3)`` vertex indices of the triangles (the geometry's ``indices``).
+      primitive_id: ``(...)`` triangle index per hit, -1 for a miss.
+      barycentrics: ``(..., 2)`` the hit's ``triangle_barycentric_coord``.
+
+    Returns:
+      ``(...)`` or ``(..., C)`` interpolated values, 0 for misses. Differentiable with respect to
+      ``attribute`` and ``barycentrics`` (and so, through the intersector, to vertices and rays).
+
+    Examples:
+      >>> import jaxrt as rt
+      >>> uv = jnp.array([[0., 0], [1, 0], [0, 1]])
+      >>> rt.shading.interpolate(uv, jnp.array([[0, 1, 2]]), jnp.array([0, -1]), jnp.array([[.25, .5], [.3, .3]]))
+      Array([[0.25, 0.5 ],
+             [0.  , 0.  ]], dtype=float32)
+    """
+    attribute = jnp.asarray(attribute)
+    primitive_id = jnp.asarray(primitive_id)
+    barycentrics = jnp.asarray(barycentrics)
+    hit = primitive_id >= 0
+    corners = attribute[jnp.asarray(indices)[jnp.maximum(primitive_id, 0)]]  # (..., 3) or (..., 3, C)
+    u, v = barycentrics[..., 0], barycentrics[..., 1]
+    weights = jnp.stack([1.0 - u - v, u, v], axis=-1).astype(corners.dtype)
+    if attribute.ndim == 1:
+        return jnp.where(hit, jnp.sum(weights * corners, axis=-1), 0.0)
+    value = jnp.sum(weights[..., None] * corners, axis=-2)
+    return jnp.where(hit.reshape(*hit.shape, *([1] * (attribute.ndim - 1))), value, 0.0)
+
+
+def texture_lookup(texture: jax.Array, uv: jax.Array) -> jax.Array:
+    """Bilinear texture lookup with clamp-to-edge addressing.
+
+    Texel ``(row, col)`` has its centre at ``uv = ((col + 0.5) / W, (row + 0.5) / H)``: ``u`` runs along
+    the width, ``v`` along the height, and row 0 is at ``v = 0``.
+
+    Args:
+      texture: ``(H, W)`` or ``(H, W, C)`` texels.
+      uv: ``(..., 2)`` texture coordinates, usually in ``[0, 1]``.
+
+    Returns:
+      ``(...)`` or ``(..., C)`` filtered values. Differentiable in ``texture`` and in ``uv`` (piecewise
+      linear: the gradient in ``uv`` jumps at texel centres and is 0 outside the clamped range).
+
+    Examples:
+      >>> import jaxrt as rt
+      >>> rt.shading.texture_lookup(jnp.array([[0., 1.], [2., 3.]]), jnp.array([[0.5, 0.5], [0.25, 0.75]]))
+      Array([1.5, 2. ], dtype=float32)
+    """
+    texture = jnp.asarray(texture)
+    uv = jnp.asarray(uv, texture.dtype)
+    height, width = texture.shape[0], texture.shape[1]
+    x = jnp.clip(uv[..., 0] * width - 0.5, 0.0, width - 1.0)
+    y = jnp.clip(uv[..., 1] * height - 0.5, 0.0, height - 1.0)
+    x0 = jnp.clip(jnp.floor(x).astype(jnp.int32), 0, max(width - 2, 0))
+    y0 = jnp.clip(jnp.floor(y).astype(jnp.int32), 0, max(height - 2, 0))
+    x1, y1 = jnp.minimum(x0 + 1, width - 1), jnp.minimum(y0 + 1, height - 1)
+    fx, fy = x - x0, y - y0
+    if texture.ndim == 3:
+        fx, fy = fx[..., None], fy[..., None]
+    top = texture[y0, x0] * (1.0 - fx) + texture[y0, x1] * fx
+    bottom = texture[y1, x0] * (1.0 - fx) + texture[y1, x1] * fx
+    return top * (1.0 - fy) + bottom * fy
+
+
+def face_forward(normals: jax.Array, directions: jax.Array) -> jax.Array:
+    """Normals flipped where needed to face against ``directions`` (e.g. towards the camera for primary rays).
+
+    Args:
+      normals: ``(..., 3)``.
+      directions: ``(..., 3)`` ray directions (from the viewer towards the surface).
+
+    Returns:
+      ``(..., 3)`` normals with ``dot(n, direction) <= 0``.
+    """
+    return jnp.where(_dot(normals, directions)[..., None] > 0, -normals, normals)
+
+
 def lambert(normals: jax.Array, light_direction: jax.Array, albedo=1.0) -> jax.Array:
-    """Lambertian shading ``albedo * max(0, dot(n, l))`` for unit normals and a direction towards the light."""
+    """Lambertian shading ``albedo * max(0, dot(n, l))`` for unit normals and a direction towards the light.
+
+    Args:
+      normals: ``(..., 3)`` unit normals.
+      light_direction: ``(3,)`` or ``(..., 3)`` direction towards the light (normalised here).
+      albedo: scalar or array broadcasting with the batch shape.
+
+    Returns:
+      ``(...)`` shading. Differentiable in all arguments (the ``max`` has gradient 0 below the horizon).
+    """
     l = _normalize(jnp.asarray(light_direction, normals.dtype))  # noqa: E741
     return albedo * jnp.maximum(jnp.sum(normals * l, axis=-1), 0.0)
 
 
+def phong(
+    normals: jax.Array,
+    light_direction: jax.Array,
+    view_direction: jax.Array,
+    *,
+    albedo: Any = 1.0,
+    specular: Any = 0.0,
+    shininess: Any = 32.0,
+) -> jax.Array:
+    """Phong shading: ``albedo * max(0, n.l) + specular * max(0, r.v) ** shininess`` with ``r = reflect(-l, n)``.
+
+    The specular lobe is only lit where ``n.l > 0``.
+
+    Args:
+      normals: ``(..., 3)`` unit normals.
+      light_direction: ``(3,)`` or ``(..., 3)`` direction towards the light (normalised here).
+      view_direction: ``(3,)`` or ``(..., 3)`` direction towards the viewer, e.g. ``-rays.direction``
+        (normalised here).
+      albedo, specular, shininess: scalars or arrays broadcasting with the batch shape; all differentiable
+        (the gradient with respect to ``shininess`` is 0, not NaN, where the lobe is 0).
+
+    Returns:
+      ``(...)`` shading.
+
+    References:
+      Phong, "Illumination for Computer Generated Pictures", CACM 18(6), 1975.
+
+    Examples:
+      >>> import jaxrt as rt
+      >>> n = jnp.array([0., 0, 1])
+      >>> float(rt.shading.phong(n, jnp.array([0., 0, 1]), jnp.array([0., 0, 1]), albedo=.5, specular=.25))
+      0.75
+    """
+    l = _normalize(jnp.asarray(light_direction, normals.dtype))  # noqa: E741
+    v = _normalize(jnp.asarray(view_direction, normals.dtype))
+    n_dot_l = _dot(normals, l)
+    reflected = 2.0 * n_dot_l[..., None] * normals - l
+    lobe = jnp.where(n_dot_l > 0, _safe_power(_dot(reflected, v), shininess), 0.0)
+    return albedo * jnp.maximum(n_dot_l, 0.0) + specular * lobe
+
+
+def blinn_phong(
+    normals: jax.Array,
+    light_direction: jax.Array,
+    view_direction: jax.Array,
+    *,
+    albedo: Any = 1.0,
+    specular: Any = 0.0,
+    shininess: Any = 32.0,
+) -> jax.Array:
+    """Blinn-Phong shading: ``albedo * max(0, n.l) + specular * max(0, n.h) ** shininess``, ``h = normalize(l + v)``.
+
+    Arguments and return value as :func:`phong`.
+
+    References:
+      Blinn, "Models of Light Reflection for Computer Synthesized Pictures", SIGGRAPH 1977.
+
+    Examples:
+      >>> import jaxrt as rt
+      >>> n = jnp.array([0., 0, 1])
+      >>> round(float(rt.shading.blinn_phong(n, jnp.array([1., 0, 1]), jnp.array([-1., 0, 1]), specular=1.)), 4)
+      1.7071
+    """
+    l = _normalize(jnp.asarray(light_direction, normals.dtype))  # noqa: E741
+    v = _normalize(jnp.asarray(view_direction, normals.dtype))
+    n_dot_l = _dot(normals, l)
+    half = _normalize(l + v)
+    lobe = jnp.where(n_dot_l > 0, _safe_power(_dot(normals, half), shininess), 0.0)
+    return albedo * jnp.maximum(n_dot_l, 0.0) + specular * lobe
+
+
 def cosine_hemisphere(key: jax.Array, normals: jax.Array) -> jax.Array:
-    """One cosine-weighted direction per normal on the hemisphere around it (Malley's method)."""
+    """One cosine-weighted direction per normal on the hemisphere around it (Malley's method).
+
+    Args:
+      key: ``jax.random`` key.
+      normals: ``(..., 3)`` unit normals.
+
+    Returns:
+      ``(..., 3)`` unit directions with density ``cos(theta) / pi``; differentiable in ``normals`` for a
+      fixed key.
+    """
     u = jax.random.uniform(key, (*normals.shape[:-1], 2), normals.dtype)
     r, phi = jnp.sqrt(u[..., 0]), 2.0 * jnp.pi * u[..., 1]
     local = jnp.stack([r * jnp.cos(phi), r * jnp.sin(phi), jnp.sqrt(jnp.maximum(0.0, 1.0 - u[..., 0]))], axis=-1)
@@ -117,7 +374,7 @@ def ambient_occlusion(
       valid: optional ``(...)`` bool; invalid points return 0 and trace no ray.
 
     Returns:
-      ``(...)`` visibility in [0, 1] (1: unoccluded).
+      ``(...)`` visibility in [0, 1] (1: unoccluded). A count of binary visibility tests: its gradient is 0.
     """
     keys = jax.random.split(key, samples)
     directions = jax.vmap(lambda k: cosine_hemisphere(k, normals))(keys)
@@ -133,3 +390,108 @@ def ambient_occlusion(
     occluded = Intersector(accept_any_intersection=True).intersect(rays, structure).type != 0
     visibility = 1.0 - jnp.mean(occluded.astype(points.dtype), axis=0)
     return visibility if valid is None else jnp.where(valid, visibility, 0.0)
+
+
+def one_bounce_diffuse(
+    key: jax.Array,
+    structure: PrimitiveAccelerationStructure,
+    vertices: jax.Array,
+    indices: jax.Array,
+    points: jax.Array,
+    normals: jax.Array,
+    *,
+    light_direction: jax.Array,
+    light_irradiance: Any = 1.0,
+    albedo: Any = 0.8,
+    vertex_albedo: jax.Array | None = None,
+    sky: Any = 0.0,
+    samples: int = 4,
+    valid: jax.Array | None = None,
+) -> jax.Array:
+    """Direct light plus one diffuse bounce at ``points``, per unit albedo, for Lambertian surfaces.
+
+    One directional light of irradiance ``E`` (on a surface facing it) and a constant ``sky`` radiance
+    illuminate Lambertian surfaces (BRDF ``albedo / pi``). With ``K = samples`` cosine-weighted directions
+    ``w_k``, the estimate is
+
+    ``S(x) = E / pi * max(0, n.l) * V(x, l) + 1/K sum_k L(x, w_k)``
+
+    where ``L`` is ``sky`` if the ray escapes and, if it hits a surface point ``y``, that point's direct
+    light ``a(y) E / pi * max(0, n_y.l) V(y, l)`` (visibility ``V`` from shadow rays; ``n_y`` is the geometric
+    normal facing the bounce ray). The radiance leaving ``x`` is ``a(x) * S(x)``: multiply by the albedo at
+    ``x``, which is left to the caller (a texture, an interpolated attribute, ...).
+
+    Args:
+      key: ``jax.random`` key for the bounce directions (fixed key, fixed noise, smooth gradients).
+      structure: a structure built from one triangle geometry, ``rt.TriangleGeometry(vertices, indices)``.
+      vertices, indices: that geometry's arrays, for the normals and albedo at bounce hits.
+      points, normals: ``(..., 3)`` surface points and unit normals facing the viewer, e.g. from
+        :func:`hit_points` and :func:`face_forward`.
+      light_direction: ``(3,)`` direction towards the light (normalised here).
+      light_irradiance: the light's irradiance, a scalar or ``(C,)`` colour.
+      albedo: the albedo of bounce hits, a scalar or ``(C,)``; ignored when ``vertex_albedo`` is given.
+      vertex_albedo: optional ``(V,)`` or ``(V, C)`` per-vertex albedo, interpolated at bounce hits.
+      sky: the radiance of escaping rays, a scalar or ``(C,)``.
+      samples: bounce rays per point (static).
+      valid: optional ``(...)`` bool; invalid points return 0 and trace no ray.
+
+    Returns:
+      ``(...)`` or ``(..., C)``: ``S(x)``. Differentiable with respect to every array argument; the hits,
+      and so the visibility terms, hold the hit primitives fixed.
+
+    Raises:
+      TypeError, ValueError: ``structure`` is not a primitive structure of exactly one geometry.
+    """
+    if not isinstance(structure, PrimitiveAccelerationStructure):
+        raise TypeError(f"one_bounce_diffuse: structure must be a primitive structure, got {type(structure).__name__}")
+    if len(structure.geometry_info) != 1:
+        raise ValueError(
+            f"one_bounce_diffuse: structure must be built from one geometry (vertices, indices), got "
+            f"{len(structure.geometry_info)}; concatenate the meshes into one geometry"
+        )
+    vertices, indices = jnp.asarray(vertices), jnp.asarray(indices)
+    points, normals = jnp.asarray(points), jnp.asarray(normals)
+    light = _normalize(jnp.asarray(light_direction, points.dtype))
+    irradiance = jnp.asarray(light_irradiance, points.dtype)
+    sky = jnp.asarray(sky, points.dtype)
+    surface_albedo = jnp.asarray(albedo if vertex_albedo is None else vertex_albedo, points.dtype)
+    albedo_channels = surface_albedo.shape if vertex_albedo is None else surface_albedo.shape[1:]
+    channels = np.broadcast_shapes(irradiance.shape, sky.shape, albedo_channels)
+    if len(channels) > 1:
+        raise ValueError(f"one_bounce_diffuse: colours must be scalars or (C,) arrays, got shape {channels}")
+    expand = (lambda a: a[..., None]) if channels else (lambda a: a)
+    batch = points.shape[:-1]
+    enabled = jnp.ones(batch, bool) if valid is None else jnp.asarray(valid)
+
+    # Bounce rays: closest hits, with barycentrics for the albedo at the hit.
+    keys = jax.random.split(key, samples)
+    directions = jax.vmap(lambda k: cosine_hemisphere(k, normals))(keys)  # (K, ..., 3)
+    start = jnp.broadcast_to(offset_ray_origin(points, normals), directions.shape)
+    all_rays = jnp.uint32(0xFFFFFFFF)
+    mask = jnp.broadcast_to(jnp.where(enabled, all_rays, jnp.uint32(0)), directions.shape[:-1])
+    bounce = Ray(start, directions, mask=mask)
+    found = Intersector(tags.triangle_data).intersect(bounce, structure)
+    bounce_hit = found.type != 0
+    y = hit_points(bounce, found)
+    n_y = face_forward(triangle_normals(vertices, indices, found.primitive_id), directions)
+    if vertex_albedo is None:
+        a_y = jnp.broadcast_to(surface_albedo, (*bounce_hit.shape, *channels))
+    else:
+        a_y = interpolate(surface_albedo, indices, found.primitive_id, found.triangle_barycentric_coord)
+
+    # Shadow rays towards the light from the points (row 0) and from the bounce hits (rows 1..K), traced at once.
+    cos_x = _dot(normals, light)
+    cos_y = _dot(n_y, light)
+    lit_x = enabled & (cos_x > 0)
+    lit_y = bounce_hit & (cos_y > 0)
+    shadow_origin = jnp.concatenate([offset_ray_origin(points, normals)[None], offset_ray_origin(y, n_y)], axis=0)
+    shadow_mask = jnp.where(jnp.concatenate([lit_x[None], lit_y], axis=0), all_rays, jnp.uint32(0))
+    shadow = Ray(shadow_origin, jnp.broadcast_to(light, shadow_origin.shape), mask=shadow_mask)
+    unoccluded = Intersector(accept_any_intersection=True).intersect(shadow, structure).type == 0
+    visible = (jnp.concatenate([lit_x[None], lit_y], axis=0) & unoccluded).astype(points.dtype)
+
+    direct_x = expand(visible[0] * jnp.maximum(cos_x, 0.0) / jnp.pi) * irradiance
+    direct_y = a_y * expand(visible[1:] * jnp.maximum(cos_y, 0.0) / jnp.pi) * irradiance
+    incoming = jnp.where(expand(bounce_hit), direct_y, sky)
+    total = direct_x + jnp.mean(incoming, axis=0)
+    return jnp.where(expand(enabled), total, 0.0)
