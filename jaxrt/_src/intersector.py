@@ -30,6 +30,8 @@ GPU_CHUNK = 1 << 22
 PORTABLE_DRIVER = "refill"
 #: Rays in flight in the refill driver (chosen by measurement on a 2-core CPU: 512, 2048, 8192 lanes).
 REFILL_LANES = 2048
+#: On a GPU a step over few lanes is all launch overhead: keep many rays in flight.
+GPU_REFILL_LANES = 1 << 18
 
 
 class _TriangleLeaves:
@@ -235,8 +237,9 @@ def _trace_portable(intersector, structure, origin, direction, t_min, t_max, ena
     args = tuple(detached(a) for a in (origin, direction, t_min, t_max)) + (enabled,)
     if PORTABLE_DRIVER == "vmap":
         return _chunked(jax.vmap(functools.partial(traverse, *nodes, leaves, **options)), args, CPU_CHUNK)
-    chunk = GPU_CHUNK if jax.default_backend() == "gpu" else CPU_CHUNK
-    return _chunked(functools.partial(traverse_refill, *nodes, leaves, **options, lanes=REFILL_LANES), args, chunk)
+    on_gpu = jax.default_backend() == "gpu"
+    chunk, lanes = (GPU_CHUNK, GPU_REFILL_LANES) if on_gpu else (CPU_CHUNK, REFILL_LANES)
+    return _chunked(functools.partial(traverse_refill, *nodes, leaves, **options, lanes=lanes), args, chunk)
 
 
 @functools.partial(jax.jit, static_argnums=0)
