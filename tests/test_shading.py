@@ -37,7 +37,9 @@ def test_vertex_normals_are_radial_on_the_icosahedron_and_differentiable():
     radial = vertices / np.linalg.norm(vertices, axis=-1, keepdims=True)
     np.testing.assert_allclose(normals, radial, atol=1e-6)
     with jax.enable_x64(True):
-        check_grads(lambda v: shading.vertex_normals(v, faces), (vertices.astype(np.float64),), order=1, modes="rev")
+        check_grads(
+            jax.jit(lambda v: shading.vertex_normals(v, faces)), (vertices.astype(np.float64),), order=1, modes="rev"
+        )
 
 
 def test_interpolate_matches_numpy_and_gives_zero_for_misses():
@@ -58,12 +60,25 @@ def test_interpolate_matches_numpy_and_gives_zero_for_misses():
     np.testing.assert_allclose(at_v1[0], attribute[faces[3, 1]], rtol=1e-6)
     with jax.enable_x64(True):
         check_grads(
-            lambda a, b: shading.interpolate(a, faces, primitive, b),
+            jax.jit(lambda a, b: shading.interpolate(a, faces, primitive, b)),
             (attribute.astype(np.float64), bary.astype(np.float64)),
             order=1,
         )
         gradient = jax.grad(lambda b: shading.interpolate(attribute, faces, primitive, b).sum())(bary)
         assert (np.asarray(gradient)[primitive < 0] == 0).all()
+
+
+def test_interpolate_normals_are_unit_and_zero_without_nan_for_misses():
+    vertices, faces = icosahedron()
+    normals = shading.vertex_normals(vertices, faces)
+    primitive = np.array([2, -1, 11])
+    bary = np.array([[0.2, 0.3], [0.0, 0.0], [0.5, 0.5]], np.float32)
+    got = np.asarray(shading.interpolate_normals(normals, faces, primitive, bary))
+    np.testing.assert_allclose(np.linalg.norm(got[[0, 2]], axis=-1), 1.0, rtol=1e-6)
+    assert (got[1] == 0).all()
+    gradient = jax.grad(lambda n, b: shading.interpolate_normals(n, faces, primitive, b).sum(), argnums=(0, 1))
+    for g in gradient(normals, bary):
+        assert np.isfinite(np.asarray(g)).all()
 
 
 def test_texture_lookup_is_bilinear_with_clamped_edges():
@@ -78,7 +93,7 @@ def test_texture_lookup_is_bilinear_with_clamped_edges():
     assert shading.texture_lookup(colour, centres).shape == (12, 2)
     with jax.enable_x64(True):
         uv = np.array([[0.3, 0.4], [0.71, 0.2]])
-        check_grads(lambda t, p: shading.texture_lookup(t, p), (texture.astype(np.float64), uv), order=1)
+        check_grads(jax.jit(shading.texture_lookup), (texture.astype(np.float64), uv), order=1)
 
 
 def test_face_forward_flips_towards_the_viewer():
@@ -109,7 +124,7 @@ def test_phong_models_closed_forms_and_gradients(model):
         assert np.isfinite(np.asarray(g)).all()
     assert float(gradients[1][2]) == 0.0  # light behind the surface: constant 0
     with jax.enable_x64(True):
-        check_grads(shade, (jnp.array([0.1, 0.2, 0.97]), 16.0), order=1)
+        check_grads(jax.jit(shade), (jnp.array([0.1, 0.2, 0.97]), 16.0), order=1)
     assert float(jax.jit(shade)(normals[0], 4.0)) == pytest.approx(float(shade(normals[0], 4.0)))
 
 
@@ -121,10 +136,10 @@ def test_lambert_keeps_its_signature():
 def test_pinhole_rays_jitter_stays_inside_the_pixel():
     width, height = 8, 6
     camera = dict(eye=(0.0, 0.0, 5.0), target=(0.0, 0.0, 0.0), fov_degrees=40.0)
-    centre = shading.pinhole_rays(width, height, **camera)
+    rays = jax.jit(lambda key: shading.pinhole_rays(width, height, key=key, **camera))
+    centre = jax.jit(lambda: shading.pinhole_rays(width, height, **camera))()
     key = jax.random.key(3)
-    jittered = shading.pinhole_rays(width, height, key=key, **camera)
-    again = shading.pinhole_rays(width, height, key=key, **camera)
+    jittered, again = rays(key), rays(key)
     np.testing.assert_array_equal(jittered.direction, again.direction)  # a fixed key, a fixed pattern
     np.testing.assert_allclose(np.linalg.norm(jittered.direction, axis=-1), 1.0, rtol=1e-6)
 
@@ -136,7 +151,7 @@ def test_pinhole_rays_jitter_stays_inside_the_pixel():
     offset = np.abs(plane(jittered.direction) - plane(centre.direction)) / pixel
     assert offset.max() <= 0.5 + 1e-4 and offset.mean() > 0.1
     # Rays are differentiable with respect to the camera.
-    grad = jax.grad(lambda eye: shading.pinhole_rays(4, 4, eye=eye, target=(0.0, 0, 0)).direction.sum())
+    grad = jax.jit(jax.grad(lambda eye: shading.pinhole_rays(4, 4, eye=eye, target=(0.0, 0, 0)).direction.sum()))
     assert np.isfinite(np.asarray(grad(jnp.array([0.0, 1.0, 5.0])))).all()
 
 

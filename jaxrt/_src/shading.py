@@ -14,6 +14,7 @@ intersector's ``triangle_barycentric_coord``); misses (``primitive_id == -1``) g
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import jax
@@ -33,6 +34,7 @@ __all__ = [
     "triangle_normals",
     "vertex_normals",
     "interpolate",
+    "interpolate_normals",
     "texture_lookup",
     "face_forward",
     "lambert",
@@ -197,6 +199,30 @@ def interpolate(
         return jnp.where(hit, jnp.sum(weights * corners, axis=-1), 0.0)
     value = jnp.sum(weights[..., None] * corners, axis=-2)
     return jnp.where(hit.reshape(*hit.shape, *([1] * (attribute.ndim - 1))), value, 0.0)
+
+
+def interpolate_normals(
+    normals: jax.Array, indices: jax.Array, primitive_id: jax.Array, barycentrics: jax.Array
+) -> jax.Array:
+    """Smooth shading normals at hits: per-vertex normals interpolated with :func:`interpolate`, renormalised.
+
+    Args:
+      normals: ``(V, 3)`` per-vertex normals, e.g. from :func:`vertex_normals`.
+      indices: ``(T, 3)`` vertex indices of the triangles.
+      primitive_id: ``(...)`` triangle index per hit, -1 for a miss.
+      barycentrics: ``(..., 2)`` the hit's ``triangle_barycentric_coord``.
+
+    Returns:
+      ``(..., 3)`` unit normals; 0 (with zero gradient, not NaN) for misses.
+
+    Examples:
+      >>> import jaxrt as rt
+      >>> n = jnp.array([[0., 0, 1], [0, 1, 0], [0, 0, 1]])
+      >>> rt.shading.interpolate_normals(n, jnp.array([[0, 1, 2]]), jnp.array([0, -1]), jnp.full((2, 2), .5))
+      Array([[0.        , 0.70710677, 0.70710677],
+             [0.        , 0.        , 0.        ]], dtype=float32)
+    """
+    return _normalize(interpolate(normals, indices, primitive_id, barycentrics))
 
 
 def texture_lookup(texture: jax.Array, uv: jax.Array) -> jax.Array:
@@ -451,47 +477,99 @@ def one_bounce_diffuse(
         )
     vertices, indices = jnp.asarray(vertices), jnp.asarray(indices)
     points, normals = jnp.asarray(points), jnp.asarray(normals)
-    light = _normalize(jnp.asarray(light_direction, points.dtype))
-    irradiance = jnp.asarray(light_irradiance, points.dtype)
-    sky = jnp.asarray(sky, points.dtype)
-    surface_albedo = jnp.asarray(albedo if vertex_albedo is None else vertex_albedo, points.dtype)
+    dtype = points.dtype
+    irradiance, sky = jnp.asarray(light_irradiance, dtype), jnp.asarray(sky, dtype)
+    surface_albedo = jnp.asarray(albedo if vertex_albedo is None else vertex_albedo, dtype)
     albedo_channels = surface_albedo.shape if vertex_albedo is None else surface_albedo.shape[1:]
     channels = np.broadcast_shapes(irradiance.shape, sky.shape, albedo_channels)
     if len(channels) > 1:
         raise ValueError(f"one_bounce_diffuse: colours must be scalars or (C,) arrays, got shape {channels}")
-    expand = (lambda a: a[..., None]) if channels else (lambda a: a)
-    batch = points.shape[:-1]
-    enabled = jnp.ones(batch, bool) if valid is None else jnp.asarray(valid)
+    enabled = jnp.ones(points.shape[:-1], bool) if valid is None else jnp.asarray(valid)
+    # The work between the two traversals is jitted in three pieces, so that a call outside jax.jit compiles a
+    # few programs (once per shape) instead of every operation.
+    bounce = _bounce_rays(key, points, normals, enabled, samples)
+    found = Intersector(tags.triangle_data).intersect(bounce, structure)
+    shadow = _shadow_rays(found, bounce, vertices, indices, points, normals, enabled, light_direction)
+    unoccluded = Intersector(accept_any_intersection=True).intersect(shadow, structure).type == 0
+    per_vertex = vertex_albedo is not None
+    return _combine(
+        found,
+        bounce,
+        shadow,
+        unoccluded,
+        vertices,
+        indices,
+        normals,
+        enabled,
+        light_direction,
+        irradiance,
+        sky,
+        surface_albedo,
+        per_vertex,
+    )
 
-    # Bounce rays: closest hits, with barycentrics for the albedo at the hit.
+
+_ALL_RAYS = 0xFFFFFFFF
+
+
+@functools.partial(jax.jit, static_argnames=("samples",))
+def _bounce_rays(key, points, normals, enabled, samples):
+    """``samples`` cosine-weighted rays per point (rows of a leading axis), masked off where not enabled."""
     keys = jax.random.split(key, samples)
     directions = jax.vmap(lambda k: cosine_hemisphere(k, normals))(keys)  # (K, ..., 3)
     start = jnp.broadcast_to(offset_ray_origin(points, normals), directions.shape)
-    all_rays = jnp.uint32(0xFFFFFFFF)
-    mask = jnp.broadcast_to(jnp.where(enabled, all_rays, jnp.uint32(0)), directions.shape[:-1])
-    bounce = Ray(start, directions, mask=mask)
-    found = Intersector(tags.triangle_data).intersect(bounce, structure)
+    mask = jnp.broadcast_to(jnp.where(enabled, jnp.uint32(_ALL_RAYS), jnp.uint32(0)), directions.shape[:-1])
+    return Ray(start, directions, mask=mask)
+
+
+def _bounce_hits(found, bounce, vertices, indices):
+    """Bounce hit points and their geometric normals facing the bounce rays."""
+    n_y = face_forward(triangle_normals(vertices, indices, found.primitive_id), bounce.direction)
+    return hit_points(bounce, found), n_y
+
+
+@jax.jit
+def _shadow_rays(found, bounce, vertices, indices, points, normals, enabled, light_direction):
+    """Rays towards the light from the points (row 0) and from the bounce hits (rows 1..K)."""
+    light = _normalize(jnp.asarray(light_direction, points.dtype))
+    y, n_y = _bounce_hits(found, bounce, vertices, indices)
+    lit = jnp.concatenate([(enabled & (_dot(normals, light) > 0))[None], (found.type != 0) & (_dot(n_y, light) > 0)])
+    origin = jnp.concatenate([offset_ray_origin(points, normals)[None], offset_ray_origin(y, n_y)], axis=0)
+    mask = jnp.where(lit, jnp.uint32(_ALL_RAYS), jnp.uint32(0))
+    return Ray(origin, jnp.broadcast_to(light, origin.shape), mask=mask)
+
+
+@functools.partial(jax.jit, static_argnames=("per_vertex",))
+def _combine(
+    found,
+    bounce,
+    shadow,
+    unoccluded,
+    vertices,
+    indices,
+    normals,
+    enabled,
+    light_direction,
+    irradiance,
+    sky,
+    surface_albedo,
+    per_vertex,
+):
+    """The estimate of :func:`one_bounce_diffuse` from the traced bounce and shadow rays."""
+    light = _normalize(jnp.asarray(light_direction, normals.dtype))
+    _, n_y = _bounce_hits(found, bounce, vertices, indices)
     bounce_hit = found.type != 0
-    y = hit_points(bounce, found)
-    n_y = face_forward(triangle_normals(vertices, indices, found.primitive_id), directions)
-    if vertex_albedo is None:
-        a_y = jnp.broadcast_to(surface_albedo, (*bounce_hit.shape, *channels))
-    else:
+    channels = jnp.broadcast_shapes(
+        irradiance.shape, sky.shape, surface_albedo.shape[1:] if per_vertex else surface_albedo.shape
+    )
+    expand = (lambda a: a[..., None]) if channels else (lambda a: a)
+    if per_vertex:
         a_y = interpolate(surface_albedo, indices, found.primitive_id, found.triangle_barycentric_coord)
-
-    # Shadow rays towards the light from the points (row 0) and from the bounce hits (rows 1..K), traced at once.
-    cos_x = _dot(normals, light)
-    cos_y = _dot(n_y, light)
-    lit_x = enabled & (cos_x > 0)
-    lit_y = bounce_hit & (cos_y > 0)
-    shadow_origin = jnp.concatenate([offset_ray_origin(points, normals)[None], offset_ray_origin(y, n_y)], axis=0)
-    shadow_mask = jnp.where(jnp.concatenate([lit_x[None], lit_y], axis=0), all_rays, jnp.uint32(0))
-    shadow = Ray(shadow_origin, jnp.broadcast_to(light, shadow_origin.shape), mask=shadow_mask)
-    unoccluded = Intersector(accept_any_intersection=True).intersect(shadow, structure).type == 0
-    visible = (jnp.concatenate([lit_x[None], lit_y], axis=0) & unoccluded).astype(points.dtype)
-
-    direct_x = expand(visible[0] * jnp.maximum(cos_x, 0.0) / jnp.pi) * irradiance
-    direct_y = a_y * expand(visible[1:] * jnp.maximum(cos_y, 0.0) / jnp.pi) * irradiance
+    else:
+        a_y = jnp.broadcast_to(surface_albedo, (*bounce_hit.shape, *channels))
+    visible = ((shadow.mask != 0) & unoccluded).astype(normals.dtype)
+    direct_x = expand(visible[0] * jnp.maximum(_dot(normals, light), 0.0) / jnp.pi) * irradiance
+    direct_y = a_y * expand(visible[1:] * jnp.maximum(_dot(n_y, light), 0.0) / jnp.pi) * irradiance
     incoming = jnp.where(expand(bounce_hit), direct_y, sky)
     total = direct_x + jnp.mean(incoming, axis=0)
     return jnp.where(expand(enabled), total, 0.0)
