@@ -1,0 +1,381 @@
+"""The Triton traversal kernel: the portable stack traversal's algorithm, one warp of 32 rays per program.
+
+Imported only where Triton is installed (see :mod:`jaxrt._src.traversal.gpu`). It reads the packed arrays of
+:mod:`jaxrt._src.traversal.packed` and makes, step for step, the same decisions as the portable step in
+:mod:`jaxrt._src.traversal.stack`: both child boxes tested with the conservative slab test (Ize 2013, with
+the same handling of zero direction components), leaf children tested on sight with the watertight triangle
+test (Woop et al. 2013, edges evaluated in a canonical endpoint order), the nearer inner child entered and the
+farther one pushed, ties resolved the same way. The traversal order, and hence the chosen leaf among equally
+distant hits and the first accepted hit in any-hit mode, are those of the portable path wherever both compute
+the same values.
+
+Exactness: the kernel is compiled without floating-point contraction (no fused multiply-add), and the hit
+distance is a correctly rounded division (``div_rn``), so every value is the IEEE result of the formulas of
+:mod:`jaxrt._src.primitives.triangle` and :mod:`jaxrt._src.primitives.box`. Rounding is monotonic, so each
+edge function ``round(a b) - round(c d)`` has the sign of the exact ``a b - c d`` or is zero (zero counts as
+inside): no ray passes between triangles that share an edge or a vertex. A contracted
+``fma(a, b, -round(c d))`` can take the wrong sign when ``a b`` and ``c d`` nearly cancel, which is why
+contraction is off.
+
+Work layout: one program traces ``LANES`` rays. A loop step costs one warp vote (``redux``), which also skips
+a leaf test that no ray of the warp needs (``BRANCH``). Each lane keeps its traversal stack in a global scratch
+buffer laid out ``[program, stack entry, lane]``, so that a warp's accesses to one stack level fall in one
+128-byte line. At most ``n_programs`` programs walk the ray blocks with a stride, so the scratch buffer is
+bounded whatever the batch size. The stack has ``STACK`` entries, the structure's depth bound, so it cannot
+overflow; a push that would is flagged anyway (and dropped).
+"""
+
+from __future__ import annotations
+
+import triton
+import triton.language as tl
+
+
+@triton.jit
+def _bit_or(a, b):
+    return a | b
+
+
+@triton.jit
+def _select(k, x, y, z):
+    """``(x, y, z)[k]`` per lane."""
+    return tl.where(k == 0, x, tl.where(k == 1, y, z))
+
+
+@triton.jit
+def _edge(ux, uy, wx, wy):
+    """Edge function ``w.x u.y - w.y u.x`` with the endpoints in a canonical order, its sign restored after.
+
+    Both triangles of a shared edge then evaluate the same expression on the same operands, so the two values
+    are exact negatives whether or not the compiler contracts a product into an FMA.
+    """
+    swap = (ux > wx) | ((ux == wx) & (uy > wy))
+    first_x = tl.where(swap, wx, ux)
+    first_y = tl.where(swap, wy, uy)
+    second_x = tl.where(swap, ux, wx)
+    second_y = tl.where(swap, uy, wy)
+    e = second_x * first_y - second_y * first_x
+    # A zero-length edge is exactly 0 (contracted, x y - y x would be a rounding error).
+    return tl.where((ux == wx) & (uy == wy), 0.0, tl.where(swap, -e, e))
+
+
+@triton.jit
+def _quad(ptr, row, width: tl.constexpr, offset: tl.constexpr, mask, LANES: tl.constexpr, VECTOR: tl.constexpr):
+    """Four consecutive float32 columns ``offset..offset+3`` of rows ``row`` (one 16-byte load per lane)."""
+    base = ptr + row * width + offset
+    if VECTOR:
+        q = tl.load(base[:, None] + tl.arange(0, 4)[None, :], mask=mask[:, None], other=0.0)
+        even, odd = tl.split(tl.reshape(q, (LANES, 2, 2)))
+        a, c = tl.split(even)
+        b, d = tl.split(odd)
+    else:
+        a = tl.load(base, mask=mask, other=0.0)
+        b = tl.load(base + 1, mask=mask, other=0.0)
+        c = tl.load(base + 2, mask=mask, other=0.0)
+        d = tl.load(base + 3, mask=mask, other=0.0)
+    return a, b, c, d
+
+
+@triton.jit
+def _triangle(
+    tris_ptr,
+    leaf,
+    mask,
+    kx,
+    ky,
+    kz,
+    okx,
+    oky,
+    okz,
+    sx,
+    sy,
+    sz,
+    t_min,
+    t_max,
+    CULL: tl.constexpr,
+    LANES: tl.constexpr,
+    VECTOR: tl.constexpr,
+):
+    """Watertight test of leaf triangles: ``(hit, distance)``, the distance ``inf`` where not hit."""
+    ax, bx, cx, _ = _quad(tris_ptr, leaf, 12, 0, mask, LANES, VECTOR)
+    ay, by, cy, _ = _quad(tris_ptr, leaf, 12, 4, mask, LANES, VECTOR)
+    az, bz, cz, _ = _quad(tris_ptr, leaf, 12, 8, mask, LANES, VECTOR)
+    # Vertices relative to the origin in the ray's (kx, ky, kz) frame.
+    a_z = _select(kz, ax, ay, az) - okz
+    b_z = _select(kz, bx, by, bz) - okz
+    c_z = _select(kz, cx, cy, cz) - okz
+    a_x = _select(kx, ax, ay, az) - okx - sx * a_z
+    b_x = _select(kx, bx, by, bz) - okx - sx * b_z
+    c_x = _select(kx, cx, cy, cz) - okx - sx * c_z
+    a_y = _select(ky, ax, ay, az) - oky - sy * a_z
+    b_y = _select(ky, bx, by, bz) - oky - sy * b_z
+    c_y = _select(ky, cx, cy, cz) - oky - sy * c_z
+    e0 = _edge(b_x, b_y, c_x, c_y)
+    e1 = _edge(c_x, c_y, a_x, a_y)
+    e2 = _edge(a_x, a_y, b_x, b_y)
+    negative = (e0 < 0) | (e1 < 0) | (e2 < 0)
+    positive = (e0 > 0) | (e1 > 0) | (e2 > 0)
+    det = e0 + e1 + e2
+    inside = ((negative & positive) == 0) & (det != 0)
+    if CULL == 1:
+        inside = inside & (det >= 0)
+    elif CULL == -1:
+        inside = inside & (det < 0)
+    t_scaled = e0 * (sz * a_z) + e1 * (sz * b_z) + e2 * (sz * c_z)
+    det_safe = tl.where(det == 0, 1.0, det)
+    distance = tl.math.div_rn(t_scaled, det_safe)
+    hit = mask & inside & (distance >= t_min) & (distance <= t_max)
+    return hit, tl.where(hit, distance, float("inf"))
+
+
+@triton.jit
+def _axis(lo, hi, o, inv, PARALLEL: tl.constexpr):
+    """Entry and exit distance of one slab; a zero direction component (clamped reciprocal) keeps the ray at
+    one coordinate: all of it is inside the slab (origin in ``[lo, hi]``) or none of it."""
+    t0 = (lo - o) * inv
+    t1 = (hi - o) * inv
+    parallel = tl.abs(inv) >= PARALLEL
+    inside = (lo <= o) & (o <= hi)
+    near = tl.where(parallel, tl.where(inside, float("-inf"), float("inf")), tl.minimum(t0, t1))
+    far = tl.where(parallel, tl.where(inside, float("inf"), float("-inf")), tl.maximum(t0, t1))
+    return near, far
+
+
+@triton.jit
+def _slab(
+    lo_x,
+    hi_x,
+    lo_y,
+    hi_y,
+    lo_z,
+    hi_z,
+    ox,
+    oy,
+    oz,
+    ix,
+    iy,
+    iz,
+    t_min,
+    t_max,
+    FAR_SCALE: tl.constexpr,
+    PARALLEL: tl.constexpr,
+):
+    """Conservative slab test of one child box: ``(hit, t_near)``."""
+    near_x, far_x = _axis(lo_x, hi_x, ox, ix, PARALLEL)
+    near_y, far_y = _axis(lo_y, hi_y, oy, iy, PARALLEL)
+    near_z, far_z = _axis(lo_z, hi_z, oz, iz, PARALLEL)
+    near = tl.maximum(tl.maximum(tl.maximum(near_x, near_y), near_z), t_min)
+    far = tl.minimum(tl.minimum(tl.minimum(far_x, far_y), far_z) * FAR_SCALE, t_max)
+    return (near <= far) & (lo_x <= hi_x), near
+
+
+@triton.jit
+def trace_kernel(
+    nodes_ptr,
+    tris_ptr,
+    rays_ptr,
+    n_rays,
+    n_programs,
+    distance_ptr,
+    leaf_ptr,
+    visited_ptr,
+    tested_ptr,
+    overflow_ptr,
+    stack_ptr,
+    STACK: tl.constexpr,
+    ANY_HIT: tl.constexpr,
+    CULL: tl.constexpr,
+    FAR_SCALE: tl.constexpr,
+    PARALLEL: tl.constexpr,
+    LANES: tl.constexpr,
+    VECTOR: tl.constexpr,
+    BRANCH: tl.constexpr,
+):
+    """Trace ``n_rays`` rays (a multiple of ``LANES``); outputs as :class:`~jaxrt._src.traversal.stack.TraversalResult`."""
+    pid = tl.program_id(0)
+    lane = tl.arange(0, LANES)
+    stack_base = stack_ptr + pid * (STACK * LANES) + lane
+    block = pid
+    while block < n_rays // LANES:
+        ray = block * LANES + lane
+        ox = tl.load(rays_ptr + ray)
+        oy = tl.load(rays_ptr + n_rays + ray)
+        oz = tl.load(rays_ptr + 2 * n_rays + ray)
+        ix = tl.load(rays_ptr + 3 * n_rays + ray)
+        iy = tl.load(rays_ptr + 4 * n_rays + ray)
+        iz = tl.load(rays_ptr + 5 * n_rays + ray)
+        sx = tl.load(rays_ptr + 6 * n_rays + ray)
+        sy = tl.load(rays_ptr + 7 * n_rays + ray)
+        sz = tl.load(rays_ptr + 8 * n_rays + ray)
+        t_min = tl.load(rays_ptr + 9 * n_rays + ray)
+        bound = tl.load(rays_ptr + 10 * n_rays + ray)
+        kx = tl.load(rays_ptr + 11 * n_rays + ray).to(tl.int32)
+        ky = tl.load(rays_ptr + 12 * n_rays + ray).to(tl.int32)
+        kz = tl.load(rays_ptr + 13 * n_rays + ray).to(tl.int32)
+        enabled = tl.load(rays_ptr + 14 * n_rays + ray) != 0
+        okx = _select(kx, ox, oy, oz)
+        oky = _select(ky, ox, oy, oz)
+        okz = _select(kz, ox, oy, oz)
+
+        distance = tl.where(enabled, bound, float("-inf"))
+        node = tl.zeros((LANES,), tl.int32)
+        depth = tl.zeros((LANES,), tl.int32)
+        leaf = tl.full((LANES,), -1, tl.int32)
+        done = tl.where(enabled, 0, 1)
+        visited = tl.zeros((LANES,), tl.int32)
+        tested = tl.zeros((LANES,), tl.int32)
+        overflow = tl.zeros((LANES,), tl.int32)
+        # One warp reduction per step: bit 0 / 1, some lane tests leaf child 0 / 1; bit 2, some lane was
+        # active when the step began. The loop therefore ends one (fully masked, no-op) step after the last ray.
+        go = tl.max(1 - done, axis=0)
+        while go > 0:
+            active = done == 0
+            lo0x, hi0x, lo1x, hi1x = _quad(nodes_ptr, node, 16, 0, active, LANES, VECTOR)
+            lo0y, hi0y, lo1y, hi1y = _quad(nodes_ptr, node, 16, 4, active, LANES, VECTOR)
+            lo0z, hi0z, lo1z, hi1z = _quad(nodes_ptr, node, 16, 8, active, LANES, VECTOR)
+            c0f, c1f, _, _ = _quad(nodes_ptr, node, 16, 12, active, LANES, VECTOR)
+            c0 = c0f.to(tl.int32, bitcast=True)
+            c1 = c1f.to(tl.int32, bitcast=True)
+            hit0, near0 = _slab(
+                lo0x, hi0x, lo0y, hi0y, lo0z, hi0z, ox, oy, oz, ix, iy, iz, t_min, distance, FAR_SCALE, PARALLEL
+            )
+            hit1, near1 = _slab(
+                lo1x, hi1x, lo1y, hi1y, lo1z, hi1z, ox, oy, oz, ix, iy, iz, t_min, distance, FAR_SCALE, PARALLEL
+            )
+            hit0 = hit0 & active
+            hit1 = hit1 & active
+            is_leaf0 = c0 < 0
+            is_leaf1 = c1 < 0
+            test0 = hit0 & is_leaf0
+            test1 = hit1 & is_leaf1
+            # Both leaves are tested against the distance bound before this step, as in the portable path.
+            h0 = tl.zeros((LANES,), tl.int1)
+            h1 = tl.zeros((LANES,), tl.int1)
+            t0 = tl.full((LANES,), float("inf"), tl.float32)
+            t1 = tl.full((LANES,), float("inf"), tl.float32)
+            votes = tl.reduce(test0.to(tl.int32) | (test1.to(tl.int32) << 1) | (active.to(tl.int32) << 2), 0, _bit_or)
+            go = votes & 4
+            if BRANCH:
+                # Skip a leaf test that no lane of the warp needs (a warp-uniform branch).
+                if (votes & 1) != 0:
+                    h0, t0 = _triangle(
+                        tris_ptr,
+                        -1 - c0,
+                        test0,
+                        kx,
+                        ky,
+                        kz,
+                        okx,
+                        oky,
+                        okz,
+                        sx,
+                        sy,
+                        sz,
+                        t_min,
+                        distance,
+                        CULL,
+                        LANES,
+                        VECTOR,
+                    )
+                if (votes & 2) != 0:
+                    h1, t1 = _triangle(
+                        tris_ptr,
+                        -1 - c1,
+                        test1,
+                        kx,
+                        ky,
+                        kz,
+                        okx,
+                        oky,
+                        okz,
+                        sx,
+                        sy,
+                        sz,
+                        t_min,
+                        distance,
+                        CULL,
+                        LANES,
+                        VECTOR,
+                    )
+            else:
+                h0, t0 = _triangle(
+                    tris_ptr,
+                    -1 - c0,
+                    test0,
+                    kx,
+                    ky,
+                    kz,
+                    okx,
+                    oky,
+                    okz,
+                    sx,
+                    sy,
+                    sz,
+                    t_min,
+                    distance,
+                    CULL,
+                    LANES,
+                    VECTOR,
+                )
+                h1, t1 = _triangle(
+                    tris_ptr,
+                    -1 - c1,
+                    test1,
+                    kx,
+                    ky,
+                    kz,
+                    okx,
+                    oky,
+                    okz,
+                    sx,
+                    sy,
+                    sz,
+                    t_min,
+                    distance,
+                    CULL,
+                    LANES,
+                    VECTOR,
+                )
+            second = t1 < t0
+            best_t = tl.where(second, t1, t0)
+            best_leaf = tl.where(second, -1 - c1, -1 - c0)
+            # Strictly nearer than the current hit; the first hit may lie exactly at t_max (closed interval).
+            found = (h0 | h1) & ((best_t < distance) | ((leaf < 0) & (best_t <= distance)))
+            distance = tl.where(found, best_t, distance)
+            leaf = tl.where(found, best_leaf, leaf)
+
+            inner0 = hit0 & (c0 >= 0)
+            inner1 = hit1 & (c1 >= 0)
+            near_first = near0 <= near1
+            near = tl.where(near_first, c0, c1)
+            far = tl.where(near_first, c1, c0)
+            both = inner0 & inner1
+            one = tl.where(inner0, c0, c1)
+            push = both & (depth < STACK)
+            tl.store(stack_base + depth * LANES, far, mask=push)
+            overflow = overflow | (both & (depth >= STACK)).to(tl.int32)
+            depth = depth + push.to(tl.int32)
+            pop = active & (inner0 == 0) & (inner1 == 0)
+            nonempty = depth > 0
+            top = tl.load(stack_base + (depth - 1) * LANES, mask=pop & nonempty, other=0)
+            next_node = tl.where(both, near, tl.where(pop, top, one))
+            node = tl.where(active, next_node, node)
+            depth = tl.where(pop & nonempty, depth - 1, depth)
+            finished = pop & (nonempty == 0)
+            if ANY_HIT:
+                finished = finished | (active & (leaf >= 0))
+            done = tl.where(finished, 1, done)
+            visited = visited + active.to(tl.int32)
+            tested = tested + test0.to(tl.int32) + test1.to(tl.int32)
+
+        tl.store(distance_ptr + ray, distance)
+        tl.store(leaf_ptr + ray, leaf)
+        tl.store(visited_ptr + ray, visited)
+        tl.store(tested_ptr + ray, tested)
+        tl.store(overflow_ptr + ray, overflow)
+        block += n_programs
+
+
+def compiled_options() -> dict:
+    """Launch options used for the kernel: one warp per program, no floating-point contraction."""
+    return dict(num_warps=1, num_stages=1, enable_fp_fusion=False)
