@@ -274,7 +274,7 @@ def test_kernel_in_triton_interpreter(monkeypatch, fresh_caches):
             wrapped = [_HostArray(np.asarray(a)) for a in (nodes, triangles, rays, *outs, scratch)]
             module.trace_kernel[(programs,)](
                 *wrapped[:3], size, programs, *wrapped[3:],
-                STACK=stack, ANY_HIT=any_hit, CULL=cull, FAR_SCALE=float(np.float32(gpu.FAR_SCALE)), PARALLEL=float(np.float32(gpu.PARALLEL_RECIPROCAL)),
+                STACK=stack, ANY_HIT=any_hit, CULL=cull, FAR_SCALE=float(np.float32(gpu.box.FAR_SCALE)), PARALLEL=float(np.float32(gpu.box.PARALLEL_RECIPROCAL)),
                 LANES=lanes, VECTOR=options.vector_loads, BRANCH=options.leaf_branch,
             )  # fmt: skip
             return tuple(w.array for w in wrapped[3:8])

@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from jaxrt._src.primitives.box import FAR_SCALE, PARALLEL_RECIPROCAL
+from jaxrt._src.primitives import box
 from jaxrt._src.traversal import packed
 from jaxrt._src.traversal.stack import TraversalResult, traverse
 
@@ -131,8 +131,8 @@ def _launch(
         STACK=stack,
         ANY_HIT=any_hit,
         CULL=cull,
-        FAR_SCALE=float(np.float32(FAR_SCALE)),
-        PARALLEL=float(np.float32(PARALLEL_RECIPROCAL)),
+        FAR_SCALE=float(np.float32(box.FAR_SCALE)),
+        PARALLEL=float(np.float32(box.PARALLEL_RECIPROCAL)),
         LANES=lanes,
         VECTOR=options.vector_loads,
         BRANCH=options.leaf_branch,
