@@ -29,14 +29,18 @@ def gamma(n: int, dtype=jnp.float32) -> float:
 
 
 def safe_reciprocal(x: jax.Array) -> jax.Array:
-    """``1 / x`` with ``|x|`` clamped to at least :data:`RECIPROCAL_CLAMP`, keeping the sign of ``x``.
+    """``1 / x`` with ``|x|`` clamped to ``[RECIPROCAL_CLAMP, 1 / RECIPROCAL_CLAMP]``, keeping the sign of ``x``.
 
     Prevents: ``inf`` reciprocals of zero direction components, whose product with a zero slab offset
-    (a ray starting on a slab plane) is NaN in the slab test. The result is always finite and non-zero.
-    Gradient: that of ``1/x`` away from zero, zero where the clamp is active.
+    (a ray starting on a slab plane) is NaN in the slab test; and, at the other end, reciprocals of huge
+    components that are subnormal and flushed to zero. The result is always finite and non-zero.
+    Gradient: that of ``1/x`` inside the clamp range, zero where the clamp is active.
     """
     sign = jnp.where(jnp.signbit(x), -1.0, 1.0).astype(x.dtype)
-    return 1.0 / jnp.where(jnp.abs(x) < RECIPROCAL_CLAMP, sign * RECIPROCAL_CLAMP, x)
+    magnitude = jnp.abs(x)
+    x = jnp.where(magnitude < RECIPROCAL_CLAMP, sign * RECIPROCAL_CLAMP, x)
+    x = jnp.where(magnitude > 1.0 / RECIPROCAL_CLAMP, sign / RECIPROCAL_CLAMP, x)
+    return 1.0 / x
 
 
 def offset_ray_origin(point: jax.Array, normal: jax.Array) -> jax.Array:

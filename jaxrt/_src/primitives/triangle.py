@@ -65,14 +65,16 @@ def _edge_functions(ray: ShearedRay, vertices: jax.Array):
     # give bitwise opposite values in its two triangles, but the compiler may fuse one product of that
     # difference into an FMA, which breaks its antisymmetry (a ray exactly through the edge then sees the same
     # small sign in both triangles and leaks). So every edge is evaluated with its endpoints in one canonical
-    # order, by one expression for all three edges, and its sign restored afterwards.
+    # order, by one expression for all three edges, and its sign restored afterwards. For the same reason a
+    # zero-length edge (x y - y x) is set to exactly 0: fused, it is a rounding error and a point-like triangle
+    # could be hit.
     ux, uy = jnp.roll(px, -1, axis=-1), jnp.roll(py, -1, axis=-1)
     wx, wy = jnp.roll(px, -2, axis=-1), jnp.roll(py, -2, axis=-1)
     swap = (ux > wx) | ((ux == wx) & (uy > wy))
     first_x, first_y = jnp.where(swap, wx, ux), jnp.where(swap, wy, uy)
     second_x, second_y = jnp.where(swap, ux, wx), jnp.where(swap, uy, wy)
     e = second_x * first_y - second_y * first_x
-    e = jnp.where(swap, -e, e)
+    e = jnp.where((ux == wx) & (uy == wy), 0.0, jnp.where(swap, -e, e))
     return e[..., 0], e[..., 1], e[..., 2], ray.shear[2] * az
 
 

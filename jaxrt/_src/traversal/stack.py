@@ -105,7 +105,8 @@ def _step(nodes, leaf_tester, ray: _RayConstants, s: _State, any_hit: bool, stac
     second = leaf_t[1] < leaf_t[0]
     best_t = jnp.where(second, leaf_t[1], leaf_t[0])
     best_leaf = jnp.where(second, -1 - children[1], -1 - children[0])
-    found = best_t < s.distance
+    # Strictly nearer than the current hit; the first hit may lie exactly at t_max (the interval is closed).
+    found = (leaf_hit[0] | leaf_hit[1]) & ((best_t < s.distance) | ((s.leaf < 0) & (best_t <= s.distance)))
     distance = jnp.where(found, best_t, s.distance)
     leaf = jnp.where(found, best_leaf, s.leaf)
 
