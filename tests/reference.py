@@ -148,8 +148,9 @@ def brute_force(
         bary_tol = 2.0 * bound_sum / abs_det + tol.distance
     tolerance = np.where(np.isfinite(tolerance), tolerance, np.inf)
 
-    certain &= (t - tolerance >= tmin) & (t + tolerance <= tmax) & enabled
-    possible &= (t + tolerance >= tmin) & (t - tolerance <= tmax) & enabled
+    with np.errstate(invalid="ignore"):  # inf - inf for rays parallel to a plane: NaN compares False
+        certain &= (t - tolerance >= tmin) & (t + tolerance <= tmax) & enabled
+        possible &= (t + tolerance >= tmin) & (t - tolerance <= tmax) & enabled
 
     clockwise = np.where(abs_det > bound_sum, np.sign(det), 0).astype(np.int8)
     if cull != "none":
