@@ -131,9 +131,7 @@ def main(argv: list[str] | None = None) -> dict:
     # interior stays visible; finite differences beyond it (the silhouette) are drawn green.
     limit = float(np.abs(automatic).max())
     norm = SymLogNorm(linthresh=float(np.percentile(np.abs(automatic[smooth]), 90)), vmin=-limit, vmax=limit)
-    colours = plt.get_cmap("RdBu_r").copy()
-    colours.set_over("limegreen")
-    colours.set_under("limegreen")
+    colours = plt.get_cmap("RdBu_r").with_extremes(over="limegreen", under="limegreen")
     fig, axes = plt.subplots(1, 3, figsize=(7.5, 3.0), dpi=80)
     panels = [
         (image, "image", dict(cmap="gray", vmin=0, vmax=1)),
