@@ -116,24 +116,9 @@ derivatives_jit = jax.jit(derivatives)
 grad_jit = jax.jit(jax.grad(loss))
 
 
-@contextlib.contextmanager
 def float64():
-    """Run jaxrt in float64 (``jax.enable_x64``).
-
-    The default refill traversal driver does not run under x64 yet (its ray counter is promoted to int64 by
-    ``jnp.sum``, which ``lax.while_loop`` rejects), so the float64 checks use the vmap driver: the same
-    per-ray step, with results identical to the refill driver (traversal/stack.py). Gradients do not go
-    through the traversal, which is detached.
-    """
-    from jaxrt._src import intersector as intersector_module
-
-    saved = intersector_module.PORTABLE_DRIVER
-    intersector_module.PORTABLE_DRIVER = "vmap"
-    try:
-        with jax.enable_x64(True):
-            yield
-    finally:
-        intersector_module.PORTABLE_DRIVER = saved
+    """Run jaxrt in float64 (geometry and rays are stored in float64 under ``jax_enable_x64``)."""
+    return jax.enable_x64(True)
 
 
 def _rotation(rng: np.random.Generator) -> np.ndarray:
