@@ -16,6 +16,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+from jax import lax
 
 
 class ShearedRay(NamedTuple):
@@ -55,27 +56,33 @@ class TriangleHit(NamedTuple):
     clockwise: jax.Array  # winding seen from the ray (see the module docstring)
 
 
+def _product(a: jax.Array, b: jax.Array) -> jax.Array:
+    """``a * b`` rounded to one bit less than the float's mantissa, so that no compiler can fuse it into an FMA.
+
+    The watertight test needs every edge function ``a b - c d`` to have the exact sign of the real value, or
+    to be zero: then an edge shared by two triangles gets exactly opposite values in both, and the signs around
+    a vertex stay consistent, so no ray passes between triangles. Separately rounded products give that
+    (rounding is monotonic), but XLA contracts ``a * b - c * d`` into ``fma(a, b, -c * d)`` on the CPU and GPU,
+    whose sign can be wrong when the products nearly cancel; a float32 ``reduce_precision`` to 23 bits is a
+    no-op that the compiler removes. Rounding to 22 bits (23 for float64's 52) cannot be removed, is still
+    monotonic, and costs a bit of precision in the barycentrics only.
+    """
+    info = jnp.finfo(a.dtype)
+    return lax.reduce_precision(a * b, exponent_bits=info.nexp, mantissa_bits=info.nmant - 1)
+
+
 def _edge_functions(ray: ShearedRay, vertices: jax.Array):
     """Woop et al.'s sheared 2D edge functions (weights of v0, v1, v2) and the sheared z of each vertex."""
     rel = vertices - ray.origin
     az = _component(rel, ray.kz)
     px = _component(rel, ray.kx) - ray.shear[0] * az
     py = _component(rel, ray.ky) - ray.shear[1] * az
-    # Edge i runs from u = vertex i+1 to w = vertex i+2; its function is w.x u.y - w.y u.x. A shared edge must
-    # give bitwise opposite values in its two triangles, but the compiler may fuse one product of that
-    # difference into an FMA, which breaks its antisymmetry (a ray exactly through the edge then sees the same
-    # small sign in both triangles and leaks). So every edge is evaluated with its endpoints in one canonical
-    # order, by one expression for all three edges, and its sign restored afterwards. For the same reason a
-    # zero-length edge (x y - y x) is set to exactly 0: fused, it is a rounding error and a point-like triangle
-    # could be hit.
-    ux, uy = jnp.roll(px, -1, axis=-1), jnp.roll(py, -1, axis=-1)
-    wx, wy = jnp.roll(px, -2, axis=-1), jnp.roll(py, -2, axis=-1)
-    swap = (ux > wx) | ((ux == wx) & (uy > wy))
-    first_x, first_y = jnp.where(swap, wx, ux), jnp.where(swap, wy, uy)
-    second_x, second_y = jnp.where(swap, ux, wx), jnp.where(swap, uy, wy)
-    e = second_x * first_y - second_y * first_x
-    e = jnp.where((ux == wx) & (uy == wy), 0.0, jnp.where(swap, -e, e))
-    return e[..., 0], e[..., 1], e[..., 2], ray.shear[2] * az
+    ax, bx, cx = px[..., 0], px[..., 1], px[..., 2]
+    ay, by, cy = py[..., 0], py[..., 1], py[..., 2]
+    e0 = _product(cx, by) - _product(cy, bx)
+    e1 = _product(ax, cy) - _product(ay, cx)
+    e2 = _product(bx, ay) - _product(by, ax)
+    return e0, e1, e2, ray.shear[2] * az
 
 
 def watertight(ray: ShearedRay, t_min: jax.Array, t_max: jax.Array, vertices: jax.Array, cull: int = 0) -> TriangleHit:
