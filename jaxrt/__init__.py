@@ -11,6 +11,12 @@ Examples:
 
 from jaxrt import intersection_functions, io, shading, tags
 from jaxrt._src.geometry import BoundingBoxGeometry, TriangleGeometry
+from jaxrt._src.instances import (
+    InstanceAccelerationStructure,
+    InstanceOptions,
+    Instances,
+    build_instance_structure,
+)
 from jaxrt._src.intersector import Intersector
 from jaxrt._src.numerics import offset_ray_origin
 from jaxrt._src.ray import Ray
@@ -21,12 +27,16 @@ __version__ = "0.1.0"
 
 __all__ = [
     "BoundingBoxGeometry",
+    "InstanceAccelerationStructure",
+    "InstanceOptions",
+    "Instances",
     "IntersectionResult",
     "IntersectionType",
     "Intersector",
     "PrimitiveAccelerationStructure",
     "Ray",
     "TriangleGeometry",
+    "build_instance_structure",
     "build_primitive_structure",
     "intersection_functions",
     "io",

@@ -10,6 +10,8 @@ import jax.numpy as jnp
 from jax import lax
 
 from jaxrt import tags as tag_module
+from jaxrt._src import intersect_instances as instancing
+from jaxrt._src.instances import InstanceAccelerationStructure
 from jaxrt._src.primitives import triangle
 from jaxrt._src.ray import Ray
 from jaxrt._src.result import IntersectionResult, IntersectionType
@@ -18,7 +20,9 @@ from jaxrt._src.traversal.stack import traverse, traverse_refill
 
 __all__ = ["Intersector"]
 
-_SUPPORTED_TAGS = frozenset(["triangle_data", "stats"])
+_SUPPORTED_TAGS = frozenset(
+    ["triangle_data", "stats", "instancing", "max_levels", "world_space_data", "user_instance_id"]
+)
 _CULL_MODES = ("none", "front", "back")
 _WINDINGS = ("clockwise", "counterclockwise")
 _BACKENDS = ("auto", "portable", "gpu")
@@ -102,6 +106,7 @@ class Intersector:
                 raise ValueError(f"Intersector: unknown tag {tag!r}; tags come from jaxrt.tags")
             if tag.name not in _SUPPORTED_TAGS:
                 raise NotImplementedError(f"Intersector: tags.{tag.name} is not supported in this version")
+        instancing.check_tags(tags)
         if triangle_cull_mode not in _CULL_MODES:
             raise ValueError(
                 f"Intersector: triangle_cull_mode must be one of {_CULL_MODES}, got {triangle_cull_mode!r}"
@@ -167,7 +172,9 @@ class Intersector:
         front = 1 if self.front_facing_winding == "clockwise" else -1
         return front if self.triangle_cull_mode == "front" else -front
 
-    def intersect(self, rays: Ray, structure: PrimitiveAccelerationStructure) -> IntersectionResult:
+    def intersect(
+        self, rays: Ray, structure: PrimitiveAccelerationStructure | InstanceAccelerationStructure
+    ) -> IntersectionResult:
         """Intersect a batch of rays (any batch shape) with a structure.
 
         Works under ``jax.jit`` and ``jax.vmap``. The ray batch is padded to a power of two so that batch
@@ -180,10 +187,11 @@ class Intersector:
         """
         if not isinstance(rays, Ray):
             raise TypeError(f"Intersector.intersect: rays must be a jaxrt.Ray, got {type(rays).__name__}")
-        if not isinstance(structure, PrimitiveAccelerationStructure):
+        if not isinstance(structure, PrimitiveAccelerationStructure | InstanceAccelerationStructure):
             raise TypeError(
                 f"Intersector.intersect: structure must be an acceleration structure, got {type(structure).__name__}"
             )
+        instancing.check_levels(self, structure)  # instance nesting deeper than the tags handle
         _resolve_backend(self)  # raises early, outside jit, when the GPU backend is forced but unavailable
         shape = rays.shape
         flat = rays.reshape(-1)
@@ -244,8 +252,10 @@ def _trace_portable(intersector, structure, origin, direction, t_min, t_max, ena
 
 @functools.partial(jax.jit, static_argnums=0)
 def _intersect_jit(
-    intersector: Intersector, rays: Ray, structure: PrimitiveAccelerationStructure
+    intersector: Intersector, rays: Ray, structure: PrimitiveAccelerationStructure | InstanceAccelerationStructure
 ) -> IntersectionResult:
+    if isinstance(structure, InstanceAccelerationStructure):
+        return instancing.intersect_instances(intersector, rays, structure)
     enabled = _enabled(rays)
     unit_z = jnp.array([0.0, 0.0, 1.0], rays.direction.dtype)
     origin = jnp.where(enabled[:, None], rays.origin, 0.0)
@@ -299,4 +309,6 @@ def _intersect_jit(
         fields["nodes_visited"] = found.nodes_visited
         fields["primitives_tested"] = found.primitives_tested
         fields["stack_overflow"] = found.stack_overflow
+    if intersector.has("instancing"):
+        fields.update(instancing.primitive_instance_fields(intersector, hit, vertices.dtype))
     return IntersectionResult(fields)
