@@ -417,8 +417,11 @@ def assert_valid_tree(structure, triangles, counts) -> int:
     ids = global_index(leaf_geometry[real], leaf_primitive[real], counts)
     np.testing.assert_array_equal(np.sort(ids), np.arange(total))
     np.testing.assert_array_equal(leaf_triangle[real], np.asarray(triangles, np.float64)[ids])
-    leaf_lo = np.where(real[:, None], leaf_triangle.min(axis=1), np.inf)
-    leaf_hi = np.where(real[:, None], leaf_triangle.max(axis=1), -np.inf)
+    # Zero-area triangles (exactly zero cross product) get empty boxes: no ray can hit them.
+    area = np.cross(leaf_triangle[:, 1] - leaf_triangle[:, 0], leaf_triangle[:, 2] - leaf_triangle[:, 0])
+    enterable = real & np.any(area != 0, axis=-1)
+    leaf_lo = np.where(enterable[:, None], leaf_triangle.min(axis=1), np.inf)
+    leaf_hi = np.where(enterable[:, None], leaf_triangle.max(axis=1), -np.inf)
 
     assert tuple(node_range[0]) == (0, capacity - 1), node_range[0]
     leaf_seen = np.zeros(capacity, np.int64)

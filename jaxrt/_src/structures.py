@@ -29,11 +29,11 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 from jax import lax
-
 from jaxrt._src.bvh.boxes import child_boxes, range_boxes
 from jaxrt._src.bvh.morton import morton_codes
 from jaxrt._src.bvh.radix_tree import build_radix_tree
 from jaxrt._src.geometry import TriangleGeometry
+from jaxrt._src.primitives import triangle
 
 __all__ = ["PrimitiveAccelerationStructure", "build_primitive_structure", "refit", "capacity_bucket"]
 
@@ -125,8 +125,11 @@ def _leaf_primitives(geometries: tuple[TriangleGeometry, ...], capacity: int):
     geometry_id = jnp.pad(geometry_id, (0, pad), constant_values=-1)
     primitive_id = jnp.pad(primitive_id, (0, pad), constant_values=-1)
     valid = geometry_id >= 0
-    lower = jnp.where(valid[:, None], jnp.min(triangles, axis=1), jnp.inf)
-    upper = jnp.where(valid[:, None], jnp.max(triangles, axis=1), -jnp.inf)
+    # A triangle whose edge vectors have an exactly zero cross product has no area: it gets an empty box, so
+    # no ray tests it. (Its sheared projection could round it into a sub-ulp sliver that a ray would hit.)
+    enterable = valid & triangle.has_area(triangles)
+    lower = jnp.where(enterable[:, None], jnp.min(triangles, axis=1), jnp.inf)
+    upper = jnp.where(enterable[:, None], jnp.max(triangles, axis=1), -jnp.inf)
     return triangles, geometry_id, primitive_id, lower, upper, valid
 
 
@@ -137,7 +140,9 @@ def _node_boxes(children, node_range, leaf_lower, leaf_upper):
 
 def _build(geometries: tuple[TriangleGeometry, ...], capacity: int) -> PrimitiveAccelerationStructure:
     triangles, geometry_id, primitive_id, lower, upper, valid = _leaf_primitives(geometries, capacity)
-    codes = morton_codes(lax.stop_gradient(lower), lax.stop_gradient(upper), valid)
+    # Codes from the triangles' own boxes: a zero-area triangle's empty box has no centroid.
+    bounds = lax.stop_gradient(triangles)
+    codes = morton_codes(jnp.min(bounds, axis=1), jnp.max(bounds, axis=1), valid)
     order = jnp.arange(capacity, dtype=jnp.int32)
     codes, order = lax.sort((codes, order), num_keys=1, is_stable=True)
     children, first, last = build_radix_tree(codes)

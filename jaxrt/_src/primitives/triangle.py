@@ -150,3 +150,17 @@ def smooth_hit(origin: jax.Array, direction: jax.Array, vertices: jax.Array):
     s = origin - v0
     q = jnp.cross(s, e1)
     return jnp.dot(e2, q) / det, jnp.dot(s, p) / det, jnp.dot(direction, q) / det
+
+
+def has_area(vertices: jax.Array) -> jax.Array:
+    """Whether triangles ``(..., 3, 3)`` have a non-zero cross product of their edge vectors.
+
+    Evaluated with the same FMA-proof products as the edge functions, so the answer does not depend on the
+    compiler. A triangle without area can never be hit; the builder gives it an empty box.
+    """
+    e1 = vertices[..., 1, :] - vertices[..., 0, :]
+    e2 = vertices[..., 2, :] - vertices[..., 0, :]
+    x = _product(e1[..., 1], e2[..., 2]) - _product(e1[..., 2], e2[..., 1])
+    y = _product(e1[..., 2], e2[..., 0]) - _product(e1[..., 0], e2[..., 2])
+    z = _product(e1[..., 0], e2[..., 1]) - _product(e1[..., 1], e2[..., 0])
+    return (x != 0) | (y != 0) | (z != 0)
