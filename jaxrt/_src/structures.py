@@ -29,6 +29,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 from jax import lax
+
 from jaxrt._src.bvh.boxes import child_boxes, range_boxes
 from jaxrt._src.bvh.morton import morton_codes
 from jaxrt._src.bvh.radix_tree import build_radix_tree
