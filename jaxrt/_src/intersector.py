@@ -82,7 +82,7 @@ class Intersector:
       >>> import jaxrt as rt
       >>> s = rt.build_primitive_structure(rt.TriangleGeometry([[0., 0, 0], [1, 0, 0], [0, 1, 0]]))
       >>> hit = rt.Intersector(rt.tags.triangle_data).intersect(rt.Ray([.2, .2, -1], [0., 0, 1]), s)
-      >>> float(hit.distance), hit.triangle_barycentric_coord.round(4).tolist()
+      >>> float(hit.distance), [round(x, 4) for x in hit.triangle_barycentric_coord.tolist()]
       (1.0, [0.2, 0.2])
     """
 
