@@ -334,6 +334,22 @@ def test_kernel_equals_portable(any_hit, cull, winding):
 
 @pytest.mark.gpu
 @needs_gpu
+@pytest.mark.parametrize("any_hit", [False, True])
+def test_kernel_equals_portable_on_the_high_quality_tree(any_hit):
+    rng = np.random.default_rng(3)
+    vertices, faces = _sphere()
+    soup = (rng.uniform(-1.2, 1.2, (40, 1, 3)) + 0.25 * rng.standard_normal((40, 3, 3))).astype(np.float32)
+    geometries = [rt.TriangleGeometry(vertices, faces), rt.TriangleGeometry(soup.reshape(-1, 3))]
+    structure = rt.build_primitive_structure(geometries, quality="high")
+    rays = _rays(4096)
+    tags = (rt.tags.triangle_data, rt.tags.stats)
+    got = rt.Intersector(*tags, backend="gpu", accept_any_intersection=any_hit).intersect(rays, structure)
+    want = rt.Intersector(*tags, backend="portable", accept_any_intersection=any_hit).intersect(rays, structure)
+    _assert_same(got, want, distance_rtol=1e-6)
+
+
+@pytest.mark.gpu
+@needs_gpu
 def test_watertight_far_from_origin():
     """Rays from inside a closed ellipsoid far from the origin, aimed at its vertices and edge midpoints."""
     vertices, faces = icosphere(5)

@@ -36,6 +36,11 @@ PORTABLE_DRIVER = "refill"
 REFILL_LANES = 2048
 #: On a GPU a step over few lanes is all launch overhead: keep many rays in flight.
 GPU_REFILL_LANES = 1 << 18
+#: Rays per compiled intersection call. Larger batches are traced in sequential chunks of this many rays
+#: (``lax.map``), so that the temporaries of packing, traversal and result assembly stay per chunk (by a count
+#: of the arrays, at most about 200 bytes per ray: 3.4 GB at 2**24); the rays, one padded copy of them and the
+#: result are per batch. Measured on an H200: 100M rays in one call peaked at 14.3 GB (docs/performance.md).
+INTERSECT_CHUNK = 1 << 24
 
 
 class _TriangleLeaves:
@@ -178,7 +183,10 @@ class Intersector:
         """Intersect a batch of rays (any batch shape) with a structure.
 
         Works under ``jax.jit`` and ``jax.vmap``. The ray batch is padded to a power of two so that batch
-        sizes in one bucket share compiled code; padding never shows in the result.
+        sizes in one bucket share compiled code; padding never shows in the result. Batches larger than
+        ``INTERSECT_CHUNK`` rays (2**24) are padded to a multiple of it and traced chunk after chunk. To trace
+        rays sharded over several devices, wrap this call in ``jax.shard_map`` over the ray axis with the
+        structure replicated (see docs/performance.md).
 
         Returns:
           An :class:`~jaxrt.IntersectionResult` with the batch shape of ``rays``. Distances, barycentrics
@@ -196,13 +204,25 @@ class Intersector:
         shape = rays.shape
         flat = rays.reshape(-1)
         n = flat.origin.shape[0]
-        padded = _ray_bucket(n)
+        chunk = INTERSECT_CHUNK
+        padded = _ray_bucket(n) if n <= chunk else -(-n // chunk) * chunk
         if padded != n:
             flat = jax.tree_util.tree_map(
                 lambda a: jnp.concatenate([a, jnp.zeros((padded - n, *a.shape[1:]), a.dtype)]), flat
             )
-        result = _intersect_jit(self, flat, structure)
+        if padded <= chunk:
+            result = _intersect_jit(self, flat, structure)
+        else:
+            result = _intersect_chunks(self, flat, structure, chunk)
         return jax.tree_util.tree_map(lambda a: a[:n].reshape(*shape, *a.shape[1:]), result)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 3))
+def _intersect_chunks(intersector: Intersector, rays: Ray, structure: Any, chunk: int) -> IntersectionResult:
+    """``_intersect_jit`` over sequential chunks of ``chunk`` rays (the ray count is a multiple of it)."""
+    split = jax.tree_util.tree_map(lambda a: a.reshape(-1, chunk, *a.shape[1:]), rays)
+    out = lax.map(lambda r: _intersect_jit(intersector, r, structure), split)
+    return jax.tree_util.tree_map(lambda a: a.reshape(-1, *a.shape[2:]), out)
 
 
 def _resolve_backend(intersector: Intersector) -> str:

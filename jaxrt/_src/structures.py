@@ -32,6 +32,7 @@ from jax import lax
 
 from jaxrt._src.bvh.boxes import child_boxes, range_boxes
 from jaxrt._src.bvh.morton import morton_codes
+from jaxrt._src.bvh.ploc import restructure
 from jaxrt._src.bvh.radix_tree import build_radix_tree
 from jaxrt._src.geometry import TriangleGeometry
 from jaxrt._src.primitives import triangle
@@ -139,7 +140,9 @@ def _node_boxes(children, node_range, leaf_lower, leaf_upper):
     return child_boxes(children, lower, upper, leaf_lower, leaf_upper)
 
 
-def _build(geometries: tuple[TriangleGeometry, ...], capacity: int) -> PrimitiveAccelerationStructure:
+def _build(
+    geometries: tuple[TriangleGeometry, ...], capacity: int, quality: str = "fast"
+) -> PrimitiveAccelerationStructure:
     triangles, geometry_id, primitive_id, lower, upper, valid = _leaf_primitives(geometries, capacity)
     # Codes from the triangles' own boxes: a zero-area triangle's empty box has no centroid.
     bounds = lax.stop_gradient(triangles)
@@ -148,6 +151,11 @@ def _build(geometries: tuple[TriangleGeometry, ...], capacity: int) -> Primitive
     codes, order = lax.sort((codes, order), num_keys=1, is_stable=True)
     children, first, last = build_radix_tree(codes)
     node_range = jnp.stack([first, last], axis=-1)
+    if quality == "high":
+        count = sum(g.primitive_count for g in geometries)
+        max_depth = 31 + max(1, (capacity - 1).bit_length())  # PrimitiveAccelerationStructure.max_depth
+        children, node_range, position = restructure(lower[order], upper[order], count, children, node_range, max_depth)
+        order = order[position]
     leaf_lower, leaf_upper = lower[order], upper[order]
     node_lower, node_upper = _node_boxes(children, node_range, leaf_lower, leaf_upper)
     info = tuple(GeometryInfo(g.kind, g.primitive_count, g.opaque) for g in geometries)
@@ -163,11 +171,17 @@ def _build(geometries: tuple[TriangleGeometry, ...], capacity: int) -> Primitive
     )
 
 
-_build_jit = jax.jit(_build, static_argnums=1)
+_build_jit = jax.jit(_build, static_argnums=(1, 2))
+#: Build qualities: the LBVH ("fast") and agglomerative clustering of its Morton order ("high").
+QUALITIES = ("fast", "high")
 
 
 def build_primitive_structure(
-    geometries: TriangleGeometry | Sequence[TriangleGeometry], *, motion: Any = None, capacity: int | None = None
+    geometries: TriangleGeometry | Sequence[TriangleGeometry],
+    *,
+    motion: Any = None,
+    capacity: int | None = None,
+    quality: str = "fast",
 ) -> PrimitiveAccelerationStructure:
     """Build an LBVH over one or more geometries (jitted; also callable on traced arrays inside ``jax.jit``).
 
@@ -180,6 +194,10 @@ def build_primitive_structure(
       motion: keyframe motion (not supported by triangle-only structures yet; must be ``None``).
       capacity: optional minimum number of primitive slots. The capacity is rounded up to a power of two
         (at least 2) so that scenes of similar size share compiled code.
+      quality: ``"fast"`` (the LBVH) or ``"high"`` (the LBVH restructured by agglomerative clustering, PLOC,
+        :mod:`jaxrt._src.bvh.ploc`): a lower SAH cost at 3 to 10 times the build time; faster to trace where
+        triangle sizes vary a lot (building interiors), about as fast on evenly tessellated meshes
+        (docs/performance.md). Same node layout either way.
 
     Returns:
       A :class:`PrimitiveAccelerationStructure`. Leaf vertices keep their gradient connection to the
@@ -193,9 +211,11 @@ def build_primitive_structure(
     """
     if motion is not None:
         raise NotImplementedError("build_primitive_structure: motion is not supported for triangle geometry yet")
+    if quality not in QUALITIES:
+        raise ValueError(f"build_primitive_structure: quality must be one of {QUALITIES}, got {quality!r}")
     geometries = _as_geometry_tuple(geometries)
     total = sum(g.primitive_count for g in geometries)
-    return _build_jit(geometries, capacity_bucket(total, capacity))
+    return _build_jit(geometries, capacity_bucket(total, capacity), quality)
 
 
 def _refit(structure: PrimitiveAccelerationStructure, geometries: tuple[TriangleGeometry, ...]):

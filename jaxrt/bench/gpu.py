@@ -1,20 +1,23 @@
-"""``python -m jaxrt.bench.gpu``: the GPU traversal kernel against the portable path and NVIDIA Warp, on one GPU.
+"""``python -m jaxrt.bench.gpu``: the GPU traversal kernel against the portable path, NVIDIA Warp and Embree.
 
-For each procedural scene (the noisy closed sphere and the random soup of :mod:`jaxrt.bench.scenes`) it
-measures the LBVH build (jitted, on the device) and its SAH cost, then traces three ray sets of
-:mod:`jaxrt.bench.rays`: primary (camera, scanline order) and diffuse (cosine-weighted from surface points)
-rays for the nearest hit, and shadow rays to a point light for any hit. It times
+For each scene (the noisy closed sphere and the random soup of :mod:`jaxrt.bench.scenes`, and the real meshes:
+the Stanford bunny and dragon, also subdivided to about 1M triangles, and the Sponza and Sibenik interiors) it
+builds one tree per build quality (``--quality fast,high``: the LBVH and the clustering build) on the device,
+reports each build's time and SAH cost, then traces three ray sets of :mod:`jaxrt.bench.rays`: primary
+(camera, scanline order) and diffuse (cosine-weighted from surface points) rays for the nearest hit, and
+shadow rays to a point light for any hit. It times
 
-- ``kernel``: the Triton kernel alone on arrays packed beforehand (what a peer's query call does);
+- ``kernel``: the Triton kernel alone on arrays packed beforehand (what a peer's query call does), per tree;
 - ``trace``: the kernel with the packing of nodes, triangles and rays (``traversal.gpu.trace``);
 - ``intersect``: ``Intersector.intersect`` with the result fields (what users call);
-- ``portable``: ``Intersector(backend="portable")`` on the same device;
+- ``portable``: ``Intersector(backend="portable")`` on the same device (``--portable-rays 0`` skips it);
 
 and counts the rays where the kernel and the portable path disagree (hit or miss, or the primitive). Times are
 medians of warm repeats, each call followed by ``block_until_ready`` (one call per sync); ``kernel``
 and Warp are also timed as ``pipelined``: several calls, then one sync, divided by the count. ``--peers`` adds
 Warp's ``wp.Mesh`` (SAH and LBVH builders) with ``mesh_query_ray`` / ``mesh_query_ray_anyhit`` on the same
-rays, and prints jaxrt's speed-up over each.
+rays, and Embree (through embreex, one host thread) where embreex is installed, and prints jaxrt's speed-up
+over each.
 
 The SAH cost is ``(sum of internal node areas + sum of leaf areas * primitives per leaf) / root area``
 (traversal and intersection cost 1 each), over the real primitives only.
@@ -29,6 +32,7 @@ import statistics
 import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import jax
@@ -38,12 +42,25 @@ import numpy as np
 import jaxrt as rt
 from jaxrt._src.intersector import _enabled, _resolve_backend
 from jaxrt._src.traversal import gpu, packed
+from jaxrt.bench.peers import Embree, embree_unavailable_reason
 from jaxrt.bench.rays import RayBatch, diffuse_rays, primary_rays, shadow_rays
-from jaxrt.bench.scenes import noisy_sphere, random_soup
+from jaxrt.bench.scenes import Scene, default_data_dir, noisy_sphere, random_soup
 
-__all__ = ["main", "sah_cost"]
+__all__ = ["main", "sah_cost", "subdivide", "load_mesh_scene"]
 
 SCENES = {"sphere": noisy_sphere, "soup": random_soup}
+#: Real meshes: ``(file, folder under the shared data folder, description, eye, target)``. The file is looked
+#: up in ``--meshes`` first (a flat folder), then in the shared data folder. ``NAME-1M`` is ``NAME`` with every
+#: triangle split into 16 (two midpoint subdivisions).
+MESHES = {
+    "bunny": ("bun_zipper.binary.ply", "stanford-bunny", "Stanford bunny", None, None),
+    "dragon": ("dragon_vrip_res3.obj.gz", "stanford-dragon-decimated", "Stanford dragon (vrip res3)", None, None),
+    # Interiors: the camera stands inside and looks along the nave (z is up).
+    "sponza": ("sponza.derived.ply", "sponza-dabrovic-3ds", "Dabrovic Sponza", (-14.0, 0.0, 3.0), (14.0, 0.0, 5.0)),
+    "sibenik": ("sibenik.derived.ply", "sibenik-3ds", "Sibenik cathedral", (-250.0, 0.0, 150.0), (900.0, 0.0, 250.0)),
+}
+#: Build qualities of ``rt.build_primitive_structure``.
+QUALITIES = ("fast", "high")
 #: (ray set, any hit) pairs traced per scene.
 QUERIES = (("primary", False), ("diffuse", False), ("shadow", True))
 #: Kernel variants compared with ``--variants`` (the default options first).
@@ -103,9 +120,49 @@ def sah_cost(structure: rt.PrimitiveAccelerationStructure) -> float:
     return float((internal + leaves) / root)
 
 
-def _rays(name: str, scene, n: int) -> RayBatch:
+def subdivide(vertices: np.ndarray, indices: np.ndarray, levels: int) -> tuple[np.ndarray, np.ndarray]:
+    """Split every triangle into four at its edge midpoints, ``levels`` times (a soup: no shared vertices).
+
+    A midpoint is ``(a + b) / 2`` in float32, the same for both triangles of a shared edge, so a closed mesh
+    stays closed.
+    """
+    tri = vertices[indices]
+    for _ in range(levels):
+        a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+        ab, bc, ca = (a + b) / np.float32(2), (b + c) / np.float32(2), (c + a) / np.float32(2)
+        tri = np.concatenate([np.stack(t, 1) for t in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
+    return tri.reshape(-1, 3).astype(np.float32), np.arange(3 * len(tri), dtype=np.int32).reshape(-1, 3)
+
+
+def load_mesh_scene(name: str, mesh_dir: str | None = None) -> Scene:
+    """A real mesh of :data:`MESHES` (``NAME-1M``: subdivided twice), read with ``jaxrt.io.load_mesh``."""
+    from jaxrt.io import load_mesh
+
+    base, _, suffix = name.partition("-")
+    file, folder, description, eye, target = MESHES[base]
+    candidates = [Path(mesh_dir) / file] if mesh_dir else []
+    data = default_data_dir()
+    if data is not None:
+        candidates.append(data / folder / file)
+    path = next((c for c in candidates if c.is_file()), None)
+    if path is None:
+        raise FileNotFoundError(f"bench.gpu: mesh {file!r} not found in {[str(c) for c in candidates]}")
+    vertices, indices = load_mesh(path)
+    if suffix:
+        vertices, indices = subdivide(vertices, indices, 2)
+        description += ", subdivided twice"
+    return Scene(name, vertices, indices, f"{description}, {len(indices):,} triangles", eye, target)
+
+
+def _load_scene(name: str, n_triangles: int, mesh_dir: str | None) -> Scene:
+    if name in SCENES:
+        return SCENES[name](n_triangles, 0)
+    return load_mesh_scene(name, mesh_dir)
+
+
+def _rays(name: str, scene: Scene, n: int) -> RayBatch:
     if name == "primary":
-        return primary_rays(scene.vertices, n)
+        return primary_rays(scene.vertices, n, eye=scene.eye, target=scene.target)
     if name == "diffuse":
         return diffuse_rays(scene.vertices, scene.indices, n)
     return shadow_rays(scene.vertices, scene.indices, n)
@@ -224,36 +281,47 @@ def _bench_warp(scene, batches: dict[str, RayBatch], repeats: int) -> dict[str, 
     return out
 
 
-def _bench_query(structure, batch: RayBatch, any_hit: bool, portable_rays: int, repeats: int, variants: bool):
-    """The jaxrt measurements of one ray set: portable path, kernel (variants), trace and intersect."""
+def _bench_query(structures: dict, batch: RayBatch, any_hit: bool, portable_rays: int, repeats: int, variants: bool):
+    """The jaxrt measurements of one ray set: portable path, kernel on every tree (variants on the first),
+    trace and intersect on the first tree."""
     n_rays = len(batch)
-    q: dict[str, Any] = {"rays": n_rays, "any_hit": any_hit}
-    portable = rt.Intersector(backend="portable", accept_any_intersection=any_hit)
-    subset = batch.take(np.arange(min(portable_rays, n_rays))).to_jaxrt()
-    portable_fn = jax.jit(portable.intersect)
-    reference = jax.block_until_ready(portable_fn(subset, structure))
-    seconds = _median_s(lambda: portable_fn(subset, structure), max(3, repeats // 3))
-    q["portable"] = {"rays": int(subset.min_distance.shape[0]), "mrays_s": subset.min_distance.shape[0] / seconds / 1e6}
+    first = next(iter(structures))
+    structure = structures[first]
+    q: dict[str, Any] = {"rays": n_rays, "any_hit": any_hit, "kernel": {}, "leaf": {}}
+    reference_primitive = None
+    if portable_rays:
+        portable = rt.Intersector(backend="portable", accept_any_intersection=any_hit)
+        subset = batch.take(np.arange(min(portable_rays, n_rays))).to_jaxrt()
+        portable_fn = jax.jit(portable.intersect)
+        reference = jax.block_until_ready(portable_fn(subset, structure))
+        seconds = _median_s(lambda: portable_fn(subset, structure), max(3, repeats // 3))
+        count = subset.min_distance.shape[0]
+        q["portable"] = {"rays": int(count), "tree": first, "mrays_s": count / seconds / 1e6}
+        reference_primitive = np.asarray(reference.primitive_id)
     if gpu.unavailable_reason(rt.Intersector()) is not None:
         return q
-    reference_primitive = np.asarray(reference.primitive_id)
     rays = _device_rays(batch)
-    for label, options in VARIANTS.items() if variants else [("default", gpu.DEFAULT_OPTIONS)]:
-        s, p, leaf, visited = _bench_kernel(structure, rays, any_hit, options, repeats)
-        q[f"kernel/{label}"] = {
-            "mrays_s": n_rays / s / 1e6,
-            "pipelined_mrays_s": n_rays / p / 1e6,
-            "mismatch_vs_portable": _agreement(
-                _primitive_of_leaf(structure, leaf[: len(reference_primitive)]), reference_primitive
-            ),
-            "visited_mean": float(visited.mean()),
-            "visited_max": int(visited.max()),
-        }
-        if label == "default":
-            q["leaf"] = leaf
+    for quality, tree in structures.items():
+        runs = VARIANTS.items() if variants and quality == first else [("default", gpu.DEFAULT_OPTIONS)]
+        q["kernel"][quality] = {}
+        for label, options in runs:
+            s, p, leaf, visited = _bench_kernel(tree, rays, any_hit, options, repeats)
+            k = {
+                "mrays_s": n_rays / s / 1e6,
+                "pipelined_mrays_s": n_rays / p / 1e6,
+                "visited_mean": float(visited.mean()),
+                "visited_max": int(visited.max()),
+            }
+            if reference_primitive is not None:
+                mine = _primitive_of_leaf(tree, leaf[: len(reference_primitive)])
+                k["mismatch_vs_portable"] = _agreement(mine, reference_primitive)
+            q["kernel"][quality][label] = k
+            if label == "default":
+                q["leaf"][quality] = leaf
     trace = jax.jit(lambda r, s: gpu.trace(s, **r, any_hit=any_hit, cull=0))
     jax.block_until_ready(trace(rays, structure))
     q["trace"] = {
+        "tree": first,
         "mrays_s": n_rays / _median_s(lambda: trace(rays, structure), repeats) / 1e6,
         "pipelined_mrays_s": n_rays / _pipelined_s(lambda: trace(rays, structure), 20) / 1e6,
     }
@@ -261,51 +329,112 @@ def _bench_query(structure, batch: RayBatch, any_hit: bool, portable_rays: int, 
     full = batch.to_jaxrt()
     jax.block_until_ready(fast(full, structure))
     q["intersect"] = {
+        "tree": first,
         "mrays_s": n_rays / _median_s(lambda: fast(full, structure), repeats) / 1e6,
         "pipelined_mrays_s": n_rays / _pipelined_s(lambda: fast(full, structure), 20) / 1e6,
     }
     return q
 
 
-def bench_scene(
-    name: str, n_triangles: int, n_rays: int, portable_rays: int, repeats: int, variants: bool, peers: bool
-):
-    """All measurements of one scene (a JSON-ready dict; ``result`` arrays are dropped by the caller)."""
-    scene = SCENES[name](n_triangles, 0)
-    _log(f"{name}: {scene.description}")
+def _build_fn(quality: str):
+    return jax.jit(lambda v, i: rt.build_primitive_structure(rt.TriangleGeometry(v, i), quality=quality))
+
+
+def _bench_builds(scene: Scene, qualities: tuple[str, ...], repeats: int) -> tuple[dict, dict]:
+    """One structure per build quality, with build time and SAH cost."""
     vertices, indices = jnp.asarray(scene.vertices), jnp.asarray(scene.indices)
-    build = jax.jit(lambda v, i: rt.build_primitive_structure(rt.TriangleGeometry(v, i)))
-    structure = jax.block_until_ready(build(vertices, indices))
-    build_s = _median_s(lambda: build(vertices, indices), repeats)
+    structures, builds = {}, {}
+    for quality in qualities:
+        build = _build_fn(quality)
+        structures[quality] = jax.block_until_ready(build(vertices, indices))
+        seconds = _median_s(lambda build=build: build(vertices, indices), repeats)
+        builds[quality] = {
+            "build_ms": seconds * 1e3,
+            "build_mprims_s": scene.triangle_count / seconds / 1e6,
+            "sah_cost": sah_cost(structures[quality]),
+        }
+        _log(f"  {quality} build {seconds * 1e3:.2f} ms, SAH cost {builds[quality]['sah_cost']:.1f}")
+    return structures, builds
+
+
+def _bench_embree(scene: Scene, batches: dict[str, RayBatch], leaves: dict, structure) -> dict[str, Any]:
+    """Embree on the same rays (one host thread), with its disagreements with the kernel."""
+    tracer = Embree(scene.vertices, scene.indices)
+    start = time.perf_counter()
+    tracer.build()
+    out: dict[str, Any] = {"build_ms": (time.perf_counter() - start) * 1e3, "version": Embree.version()}
+    for query, any_hit in QUERIES:
+        batch = batches[query]
+        start = time.perf_counter()
+        result = tracer.any_hit(batch) if any_hit else tracer.closest(batch).primitive
+        entry: dict[str, Any] = {"mrays_s": len(batch) / (time.perf_counter() - start) / 1e6}
+        leaf = leaves.get(query)
+        if leaf is not None:
+            mine = _primitive_of_leaf(structure, leaf)
+            entry["mismatch_vs_kernel"] = (
+                {"hit_miss": int(((mine >= 0) != result).sum())} if any_hit else _agreement(mine, result)
+            )
+        out[query] = entry
+    return out
+
+
+def bench_scene(
+    name: str,
+    n_triangles: int,
+    n_rays: int,
+    portable_rays: int,
+    repeats: int,
+    variants: bool,
+    peers: bool,
+    qualities: tuple[str, ...] = QUALITIES,
+    mesh_dir: str | None = None,
+):
+    """All measurements of one scene (a JSON-ready dict; ``leaf`` arrays are dropped before it returns)."""
+    scene = _load_scene(name, n_triangles, mesh_dir)
+    _log(f"{name}: {scene.description}")
+    structures, builds = _bench_builds(scene, qualities, repeats)
+    first = qualities[0]
     entry: dict[str, Any] = {
         "triangles": scene.triangle_count,
-        "build_ms": build_s * 1e3,
-        "build_mprims_s": scene.triangle_count / build_s / 1e6,
-        "sah_cost": sah_cost(structure),
-        "max_depth_bound": structure.max_depth,
+        "builds": builds,
+        "max_depth_bound": structures[first].max_depth,
         "queries": {},
     }
-    _log(f"  build {build_s * 1e3:.2f} ms, SAH cost {entry['sah_cost']:.1f}")
     batches = {q: _rays(q, scene, n_rays) for q, _ in QUERIES}
     for query, any_hit in QUERIES:
-        q = _bench_query(structure, batches[query], any_hit, portable_rays, repeats, variants)
+        q = _bench_query(structures, batches[query], any_hit, portable_rays, repeats, variants)
         entry["queries"][query] = q
-        rates = ", ".join(f"{k} {v['mrays_s']:.1f}" for k, v in q.items() if isinstance(v, dict) and "mrays_s" in v)
+        rates = (
+            ", ".join(f"kernel[{t}] {k['default']['pipelined_mrays_s']:.0f}" for t, k in q["kernel"].items())
+            or f"portable {q.get('portable', {}).get('mrays_s', float('nan')):.1f}"
+        )
         _log(f"  {query}: {rates}")
+    leaves = {query: q["leaf"].get(first) for query, q in entry["queries"].items()}
     if peers:
-        warp = _bench_warp(scene, batches, repeats)
-        for w in warp.values():
-            for query, any_hit in QUERIES:
-                result = w[query].pop("result")
-                leaf = entry["queries"][query].get("leaf")
-                if leaf is not None:
-                    mine = _primitive_of_leaf(structure, leaf)
-                    if any_hit:
-                        w[query]["mismatch_vs_kernel"] = {"hit_miss": int(((mine >= 0) != result).sum())}
-                    else:
-                        w[query]["mismatch_vs_kernel"] = _agreement(mine, result)
-        entry["warp"] = warp
-        _log("  warp: " + json.dumps({c: {k: v for k, v in w.items()} for c, w in warp.items()}, default=float))
+        try:
+            import warp  # noqa: F401
+        except ImportError as error:
+            _log(f"  Warp not run: {error}")
+        else:
+            warp_results = _bench_warp(scene, batches, repeats)
+            for w in warp_results.values():
+                for query, any_hit in QUERIES:
+                    result = w[query].pop("result")
+                    if leaves[query] is not None:
+                        mine = _primitive_of_leaf(structures[first], leaves[query])
+                        w[query]["mismatch_vs_kernel"] = (
+                            {"hit_miss": int(((mine >= 0) != result).sum())} if any_hit else _agreement(mine, result)
+                        )
+            entry["warp"] = warp_results
+            _log("  warp: " + json.dumps(warp_results, default=float))
+        reason = embree_unavailable_reason()
+        if reason is None:
+            entry["embree"] = _bench_embree(scene, batches, leaves, structures[first])
+            _log("  embree: " + json.dumps(entry["embree"], default=float))
+        else:
+            _log(
+                f"  Embree not run here ({reason}); its numbers come from the CPU bench, python -m jaxrt.bench --peers"
+            )
     for q in entry["queries"].values():
         q.pop("leaf", None)
     return entry
@@ -315,72 +444,116 @@ def _primitive_of_leaf(structure, leaf: np.ndarray) -> np.ndarray:
     return np.where(leaf >= 0, np.asarray(structure.leaf_primitive)[np.maximum(leaf, 0)], -1)
 
 
-def build_only(name: str, n_triangles: int, repeats: int) -> dict[str, Any]:
-    """Build time and SAH cost of a (large) scene."""
+def build_only(name: str, n_triangles: int, repeats: int, qualities: tuple[str, ...] = QUALITIES) -> dict[str, Any]:
+    """Build times and SAH costs of a (large) scene."""
     scene = SCENES[name](n_triangles, 0)
-    vertices, indices = jnp.asarray(scene.vertices), jnp.asarray(scene.indices)
-    build = jax.jit(lambda v, i: rt.build_primitive_structure(rt.TriangleGeometry(v, i)))
-    structure = jax.block_until_ready(build(vertices, indices))
-    seconds = _median_s(lambda: build(vertices, indices), repeats)
-    return {
-        "triangles": scene.triangle_count,
-        "build_ms": seconds * 1e3,
-        "build_mprims_s": scene.triangle_count / seconds / 1e6,
-        "sah_cost": sah_cost(structure),
+    _, builds = _bench_builds(scene, qualities, repeats)
+    return {"triangles": scene.triangle_count, "builds": builds}
+
+
+def huge_batch(n_rays: int, n_triangles: int = 1 << 20) -> dict[str, Any]:
+    """Trace ``n_rays`` primary rays (2**20 camera rays tiled) on the noisy sphere in one ``intersect`` call.
+
+    Checks that every tile's result equals that of the 2**20 rays traced alone, and reports the time of the
+    second call and the device's peak memory (where the backend reports it), to set the documented cap.
+    """
+    scene = noisy_sphere(n_triangles, 0)
+    structure = rt.build_primitive_structure(rt.TriangleGeometry(scene.vertices, scene.indices))
+    base = primary_rays(scene.vertices, 1 << 20)
+    intersector = rt.Intersector()
+    alone = np.asarray(intersector.intersect(base.to_jaxrt(), structure).primitive_id)
+    tiles = -(-n_rays // len(base))
+    origin = jnp.tile(jnp.asarray(base.origin), (tiles, 1))[:n_rays]
+    direction = jnp.tile(jnp.asarray(base.direction), (tiles, 1))[:n_rays]
+    rays = jax.block_until_ready(rt.Ray(origin, direction))
+    del origin, direction
+    jax.block_until_ready(intersector.intersect(rays, structure).primitive_id)
+    start = time.perf_counter()
+    primitive = jax.block_until_ready(intersector.intersect(rays, structure).primitive_id)
+    seconds = time.perf_counter() - start
+    full = (n_rays // len(base)) * len(base)
+    tiled = np.asarray(primitive[:full]).reshape(-1, len(base))
+    stats = jax.devices()[0].memory_stats() or {}
+    out = {
+        "rays": n_rays,
+        "seconds": seconds,
+        "mrays_s": n_rays / seconds / 1e6,
+        "tiles_equal_to_one_call": bool((tiled == alone).all()),
+        "rest_equal": bool((np.asarray(primitive[full:]) == alone[: n_rays - full]).all()),
+        "peak_bytes": stats.get("peak_bytes_in_use"),
+        "bytes_limit": stats.get("bytes_limit"),
     }
+    _log("huge batch: " + json.dumps(out))
+    return out
+
+
+def _nan(x: Any) -> float:
+    return float("nan") if x is None else float(x)
 
 
 def format_table(results: dict[str, Any]) -> str:
-    """The summary table (Mrays/s; ratios are jaxrt's kernel over the peer)."""
+    """The summary tables (Mrays/s; ratios are jaxrt's pipelined kernel on each tree over Warp's SAH query)."""
+    qualities = results.get("qualities", list(QUALITIES))
     lines = [f"backend picked by Intersector(): {results['auto_backend']}", ""]
-    head = "| scene | query | kernel | kernel pipelined | trace pipelined | intersect | intersect pipelined | portable | mismatches (hit/miss, prim) |"
-    warp_cols = ""
-    if any("warp" in s for s in results["scenes"].values()):
-        warp_cols = " Warp SAH | Warp LBVH | x SAH | x LBVH |"
-    lines.append(head + warp_cols)
-    lines.append("|" + "---|" * (head.count("|") - 1 + warp_cols.count("|")))
+    tree_cols = "".join(f" kernel {t} |" for t in qualities)
+    ratio_cols = "".join(f" {t} / Warp SAH |" for t in qualities)
+    head = (
+        f"| scene | query |{tree_cols} intersect | portable | mismatches vs portable | Warp SAH | Warp LBVH |"
+        f"{ratio_cols} {qualities[0]} / Warp LBVH | Embree (1 thread) |"
+    )
+    lines += [head, "|" + "---|" * (head.count("|") - 1)]
     for name, s in results["scenes"].items():
         for query, q in s["queries"].items():
-            k = q.get("kernel/default", {})
-            mm = k.get("mismatch_vs_portable", {})
-            row = (
-                f"| {name} | {query}{' (any)' if q['any_hit'] else ''} | {k.get('mrays_s', float('nan')):.0f} | "
-                f"{k.get('pipelined_mrays_s', float('nan')):.0f} | {q.get('trace', {}).get('pipelined_mrays_s', float('nan')):.0f} | "
-                f"{q.get('intersect', {}).get('mrays_s', float('nan')):.0f} | "
-                f"{q.get('intersect', {}).get('pipelined_mrays_s', float('nan')):.0f} | {q['portable']['mrays_s']:.1f} | "
-                f"{mm.get('hit_miss', '-')}, {mm.get('primitive', '-')} |"
+            kernels = q.get("kernel", {})
+            rate = {t: _nan(kernels.get(t, {}).get("default", {}).get("pipelined_mrays_s")) for t in qualities}
+            mm = ", ".join(
+                f"{t} {k['default']['mismatch_vs_portable']['hit_miss']}/{k['default']['mismatch_vs_portable']['primitive']}"
+                for t, k in kernels.items()
+                if "mismatch_vs_portable" in k.get("default", {})
             )
-            if "warp" in s:
-                ws, wl = s["warp"]["sah"][query], s["warp"]["lbvh"][query]
-                kp = k.get("pipelined_mrays_s", float("nan"))
-                row += f" {ws['pipelined_mrays_s']:.0f} | {wl['pipelined_mrays_s']:.0f} | {kp / ws['pipelined_mrays_s']:.2f} | {kp / wl['pipelined_mrays_s']:.2f} |"
+            warp = s.get("warp", {})
+            ws = _nan(warp.get("sah", {}).get(query, {}).get("pipelined_mrays_s"))
+            wl = _nan(warp.get("lbvh", {}).get(query, {}).get("pipelined_mrays_s"))
+            embree = _nan(s.get("embree", {}).get(query, {}).get("mrays_s"))
+            row = f"| {name} | {query}{' (any)' if q['any_hit'] else ''} |"
+            row += "".join(f" {rate[t]:.0f} |" for t in qualities)
+            row += f" {_nan(q.get('intersect', {}).get('pipelined_mrays_s')):.0f} |"
+            row += f" {_nan(q.get('portable', {}).get('mrays_s')):.1f} | {mm or '-'} | {ws:.0f} | {wl:.0f} |"
+            row += "".join(f" {rate[t] / ws:.2f} |" for t in qualities)
+            row += f" {rate[qualities[0]] / wl:.2f} | {embree:.1f} |"
             lines.append(row)
-    lines += [
-        "",
-        "| scene | triangles | LBVH build ms | Mprims/s | SAH cost | Warp SAH build ms | Warp LBVH build ms |",
-        "|---|---|---|---|---|---|---|",
-    ]
+    build_cols = "".join(f" {t} ms | {t} Mprims/s | {t} SAH |" for t in qualities)
+    head = f"| scene | triangles |{build_cols} Warp SAH ms | Warp LBVH ms | Embree ms |"
+    lines += ["", head, "|" + "---|" * (head.count("|") - 1)]
     for name, s in {**results["scenes"], **results.get("builds", {})}.items():
+        row = f"| {name} | {s['triangles']:,} |"
+        for t in qualities:
+            b = s["builds"].get(t, {})
+            row += f" {_nan(b.get('build_ms')):.2f} | {_nan(b.get('build_mprims_s')):.0f} | {_nan(b.get('sah_cost')):.1f} |"
         warp = s.get("warp", {})
-        lines.append(
-            f"| {name} | {s['triangles']:,} | {s['build_ms']:.2f} | {s['build_mprims_s']:.0f} | {s['sah_cost']:.1f} | "
-            f"{warp.get('sah', {}).get('build_ms', float('nan')):.1f} | {warp.get('lbvh', {}).get('build_ms', float('nan')):.2f} |"
-        )
-    variant_rows = []
+        row += f" {_nan(warp.get('sah', {}).get('build_ms')):.1f} | {_nan(warp.get('lbvh', {}).get('build_ms')):.2f} |"
+        row += f" {_nan(s.get('embree', {}).get('build_ms')):.1f} |"
+        lines.append(row)
+    variant_rows, labels = [], []
     for name, s in results["scenes"].items():
         for query, q in s["queries"].items():
-            cells = [
-                f"{q[k]['pipelined_mrays_s']:.0f} ({q[k]['mismatch_vs_portable']['hit_miss']}/{q[k]['mismatch_vs_portable']['primitive']})"
-                for k in q
-                if k.startswith("kernel/")
-            ]
-            if len(cells) > 1:
+            runs = q.get("kernel", {}).get(qualities[0], {})
+            if len(runs) > 1:
+                labels = list(runs)
+                cells = [
+                    f"{r['pipelined_mrays_s']:.0f}"
+                    + (
+                        f" ({r['mismatch_vs_portable']['hit_miss']}/{r['mismatch_vs_portable']['primitive']})"
+                        if "mismatch_vs_portable" in r
+                        else ""
+                    )
+                    for r in runs.values()
+                ]
                 variant_rows.append(f"| {name} | {query} | " + " | ".join(cells) + " |")
     if variant_rows:
-        labels = [k for k in next(iter(results["scenes"].values()))["queries"]["primary"] if k.startswith("kernel/")]
         lines += [
             "",
-            "kernel variants, pipelined Mrays/s (mismatches hit-miss/primitive vs portable):",
+            f"kernel variants on the {qualities[0]} tree, pipelined Mrays/s (mismatches hit-miss/primitive vs portable):",
             "| scene | query | " + " | ".join(labels) + " |",
             "|---|---|" + "---|" * len(labels),
         ]
@@ -391,22 +564,34 @@ def format_table(results: dict[str, Any]) -> str:
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     """Run the GPU bench; prints the table last and returns the results."""
     parser = argparse.ArgumentParser(prog="python -m jaxrt.bench.gpu", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--peers", action="store_true", help="also run NVIDIA Warp (SAH and LBVH) on the same rays")
+    parser.add_argument("--peers", action="store_true", help="also run NVIDIA Warp (SAH and LBVH) and Embree")
     parser.add_argument("--json", metavar="FILE", help="write all numbers to FILE")
-    parser.add_argument("--triangles", type=int, default=1 << 20, help="triangles per scene (default 2**20)")
+    parser.add_argument("--triangles", type=int, default=1 << 20, help="triangles per procedural scene (2**20)")
     parser.add_argument("--rays", type=int, default=1 << 20, help="rays per ray set (default 2**20)")
-    parser.add_argument("--portable-rays", type=int, default=1 << 20, help="rays traced by the portable path")
+    parser.add_argument("--portable-rays", type=int, default=1 << 20, help="rays traced by the portable path (0: none)")
     parser.add_argument("--repeats", type=int, default=10, help="timed repeats (median)")
-    parser.add_argument("--scenes", default="sphere,soup", help="comma-separated scene names")
+    parser.add_argument(
+        "--scenes",
+        default="sphere,soup",
+        help=f"comma-separated scenes: {', '.join(SCENES)}, {', '.join(MESHES)} and NAME-1M for a subdivided mesh",
+    )
+    parser.add_argument("--meshes", metavar="DIR", help="folder holding the mesh files (else the shared data folder)")
+    parser.add_argument(
+        "--quality", default=",".join(QUALITIES), help="build qualities to trace, first is the reference"
+    )
     parser.add_argument("--variants", action="store_true", help="also time kernel code-generation variants")
     parser.add_argument("--build-sizes", default="", help="extra build-only sizes, e.g. 10000000 (comma-separated)")
+    parser.add_argument("--build-scenes", default="sphere,soup", help="procedural scenes of --build-sizes")
+    parser.add_argument("--huge-rays", type=int, default=0, help="also trace this many rays in one intersect call")
     args = parser.parse_args(argv)
+    qualities = tuple(args.quality.split(","))
     results: dict[str, Any] = {
         "device": str(jax.devices()[0]),
         "jax": jax.__version__,
         "auto_backend": _resolve_backend(rt.Intersector()),
         "kernel_unavailable_reason": gpu.unavailable_reason(rt.Intersector()),
         "default_options": dataclasses.asdict(gpu.DEFAULT_OPTIONS),
+        "qualities": list(qualities),
         "scenes": {},
         "builds": {},
     }
@@ -418,15 +603,26 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             with open(args.json, "w") as f:
                 json.dump(results, f, indent=1, default=float)
 
-    for name in args.scenes.split(","):
+    for name in filter(None, args.scenes.split(",")):
         results["scenes"][name] = bench_scene(
-            name, args.triangles, args.rays, args.portable_rays, args.repeats, args.variants, args.peers
+            name,
+            args.triangles,
+            args.rays,
+            args.portable_rays,
+            args.repeats,
+            args.variants,
+            args.peers,
+            qualities,
+            args.meshes,
         )
         save()
     for size in filter(None, args.build_sizes.split(",")):
-        for name in args.scenes.split(","):
-            results["builds"][f"{name}-{int(size) / 1e6:g}M"] = build_only(name, int(size), args.repeats)
+        for name in filter(None, args.build_scenes.split(",")):
+            results["builds"][f"{name}-{int(size) / 1e6:g}M"] = build_only(name, int(size), args.repeats, qualities)
             save()
+    if args.huge_rays:
+        results["huge_batch"] = huge_batch(args.huge_rays, args.triangles)
+        save()
     print(format_table(results))
     return results
 

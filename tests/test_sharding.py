@@ -1,0 +1,88 @@
+"""Many rays, many devices: chunked batches and rays sharded over devices give the hits of one plain call.
+
+The sharded test runs in a subprocess with ``XLA_FLAGS=--xla_force_host_platform_device_count=4`` (the flag
+must be set before JAX starts), tracing rays split over four CPU devices with ``jax.shard_map`` around
+``Intersector.intersect``, the structure replicated: the way docs/performance.md gives for several GPUs.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+
+import jaxrt as rt
+from jaxrt._src import intersector as intersector_module
+
+
+def _scene_and_rays(n_rays: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    triangles = (rng.uniform(-1, 1, (60, 1, 3)) + 0.3 * rng.normal(size=(60, 3, 3))).astype(np.float32)
+    structure = rt.build_primitive_structure(rt.TriangleGeometry(triangles.reshape(-1, 3)))
+    origin = rng.uniform(-2, 2, (n_rays, 3)).astype(np.float32)
+    direction = (rng.uniform(-0.5, 0.5, (n_rays, 3)) - origin).astype(np.float32)
+    t_max = np.where(rng.random(n_rays) < 0.1, 0.5, np.inf).astype(np.float32)
+    return structure, rt.Ray(origin, direction, 0.0, t_max)
+
+
+def _assert_same(result, reference):
+    """Same hits; hit distances and barycentrics to rounding (XLA may fuse, and contract, differently per
+    program)."""
+    for name in reference:
+        got, want = np.asarray(result[name]), np.asarray(reference[name])
+        if np.issubdtype(want.dtype, np.floating):
+            np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6, err_msg=name)
+        else:
+            np.testing.assert_array_equal(got, want, err_msg=name)
+
+
+def test_batches_over_the_chunk_size_are_traced_in_chunks(monkeypatch):
+    structure, rays = _scene_and_rays(300)
+    intersector = rt.Intersector(rt.tags.triangle_data)
+    whole = intersector.intersect(rays, structure)
+    calls = []
+    chunked = intersector_module._intersect_chunks
+    monkeypatch.setattr(intersector_module, "_intersect_chunks", lambda *a: calls.append(a[3]) or chunked(*a))
+    monkeypatch.setattr(intersector_module, "INTERSECT_CHUNK", 64)
+    parts = intersector.intersect(rays, structure)  # 300 rays: padded to 320, five chunks of 64
+    assert calls == [64]
+    assert parts.distance.shape == (300,)
+    _assert_same(parts, whole)
+
+
+_SHARDED = textwrap.dedent(
+    """
+    import jax
+    import numpy as np
+    from jax.sharding import NamedSharding, PartitionSpec as P
+
+    import jaxrt as rt
+    from test_sharding import _assert_same, _scene_and_rays
+
+    assert jax.device_count() == 4, jax.devices()
+    structure, rays = _scene_and_rays(1000)  # 250 rays per device: each pads its own shard
+    intersector = rt.Intersector(rt.tags.triangle_data)
+    reference = intersector.intersect(rays, structure)
+    mesh = jax.make_mesh((4,), ("rays",))
+    rays = jax.device_put(rays, NamedSharding(mesh, P("rays")))
+    sharded = jax.jit(
+        jax.shard_map(intersector.intersect, mesh=mesh, in_specs=(P("rays"), P()), out_specs=P("rays"), check_vma=False)
+    )
+    out = sharded(rays, structure)
+    assert out.distance.sharding.spec == P("rays"), out.distance.sharding
+    assert len({s.device for s in out.distance.addressable_shards}) == 4
+    assert int((reference.primitive_id >= 0).sum()) > 100
+    _assert_same(out, reference)
+    print("sharded ok")
+    """
+)
+
+
+def test_rays_sharded_over_four_devices_equal_one_call():
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+    env["PYTHONPATH"] = os.pathsep.join([os.path.dirname(__file__), env.get("PYTHONPATH", "")])
+    run = subprocess.run([sys.executable, "-c", _SHARDED], env=env, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0 and "sharded ok" in run.stdout, run.stdout + run.stderr
