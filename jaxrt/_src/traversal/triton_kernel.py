@@ -43,20 +43,22 @@ def _select(k, x, y, z):
 
 
 @triton.jit
-def _edge(ux, uy, wx, wy):
-    """Edge function ``w.x u.y - w.y u.x`` with the endpoints in a canonical order, its sign restored after.
+def _product(a, b):
+    """``a * b`` rounded to 22 mantissa bits (nearest, ties to even), as the portable path's ``_product``.
 
-    Both triangles of a shared edge then evaluate the same expression on the same operands, so the two values
-    are exact negatives whether or not the compiler contracts a product into an FMA.
+    The watertight test then decides every edge exactly as the portable traversal does (see
+    ``jaxrt._src.primitives.triangle._product`` for why the products are rounded to one bit less).
     """
-    swap = (ux > wx) | ((ux == wx) & (uy > wy))
-    first_x = tl.where(swap, wx, ux)
-    first_y = tl.where(swap, wy, uy)
-    second_x = tl.where(swap, ux, wx)
-    second_y = tl.where(swap, uy, wy)
-    e = second_x * first_y - second_y * first_x
-    # A zero-length edge is exactly 0 (contracted, x y - y x would be a rounding error).
-    return tl.where((ux == wx) & (uy == wy), 0.0, tl.where(swap, -e, e))
+    bits = (a * b).to(tl.int32, bitcast=True)
+    # One dropped bit: a set bit is exactly half an ulp of the kept mantissa; round up only to an even result.
+    bits = (bits + (bits & (bits >> 1) & 1)) & ~1
+    return bits.to(tl.float32, bitcast=True)
+
+
+@triton.jit
+def _edge(ux, uy, wx, wy):
+    """Edge function ``w.x u.y - w.y u.x`` with separately rounded products (exact sign, or zero)."""
+    return _product(wx, uy) - _product(wy, ux)
 
 
 @triton.jit
