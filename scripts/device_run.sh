@@ -1,0 +1,30 @@
+#!/usr/bin/env bash
+# One call on a CUDA machine: the core bench (GPU kernel and portable path), the gradient and instancing
+# benches, and the GPU and gradient tests. Needs the wheels in .whl/ (jax-triton, trimesh) and the shared
+# meshes copied to .data/ in the shared data layout. Logs and JSON go to $OUT (or /tmp/out).
+#   bash scripts/device_run.sh core     core bench, gradient bench, GPU + gradient tests
+#   bash scripts/device_run.sh more     instancing and curve benches
+set -uo pipefail
+part=${1:-core}
+out=${OUT:-/tmp/out}
+mkdir -p "$out"
+python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
+export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 JAXRT_DATA_DIR=$PWD/.data
+nvidia-smi --query-gpu=name,driver_version,clocks.sm,memory.used --format=csv
+step() { local name=$1 limit=$2; shift 2; echo "=== $name: $*"; timeout "$limit" "$@" > "$out/$name.log" 2>&1; echo "exit $?"; }
+case $part in
+  core)
+    step core_gpu 240 python3 -m jaxrt.bench --scenes sphere bunny dragon --triangles 1000000 --rays 1048576 \
+      --no-embree --json "$out/core_gpu.json"
+    step core_portable 150 python3 -m jaxrt.bench --backend portable --scenes sphere --triangles 1000000 \
+      --rays 262144 --no-embree --json "$out/core_portable.json"
+    step gradients 120 python3 -m jaxrt.bench.gradients --triangles 1000000 --rays 1048576 --json "$out/gradients.json"
+    step tests 150 python3 -m pytest tests/test_gpu.py tests/test_gradients.py -q -p no:cacheprovider -rs \
+      -k "not interpreter"
+    ;;
+  more)
+    step instancing 200 python3 -m jaxrt.bench.instancing --json "$out/instancing.json"
+    step curves 200 python3 -m jaxrt.bench.curves --json "$out/curves.json"
+    ;;
+esac
+for f in "$out"/*.log; do echo "##### $f"; tail -n 40 "$f"; done
