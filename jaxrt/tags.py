@@ -38,9 +38,11 @@ triangle_data = Tag("triangle_data")
 curve_data = Tag("curve_data")
 """Adds ``curve_parameter`` (curve geometry)."""
 instancing = Tag("instancing")
-"""Allows instance structures (with :func:`max_levels`)."""
+"""Allows instance structures; adds ``instance_id`` and ``user_instance_id`` ``(..., n)`` and ``instance_count``
+(``n`` from :func:`max_levels`, 1 without it)."""
 world_space_data = Tag("world_space_data")
-"""Adds the object-to-world and world-to-object transforms of the hit instance chain."""
+"""Adds the object-to-world and world-to-object transforms ``(..., 3, 4)`` of the hit instance chain (needs
+:data:`instancing`)."""
 primitive_motion = Tag("primitive_motion")
 """Keyframe motion of primitives at each ray's time."""
 instance_motion = Tag("instance_motion")
@@ -48,7 +50,8 @@ instance_motion = Tag("instance_motion")
 primitive_data = Tag("primitive_data")
 """Adds the hit primitive's user data."""
 user_instance_id = Tag("user_instance_id")
-"""Adds the user ids of the hit instance chain."""
+"""Metal's tag for the user ids of the hit instance chain; ``instancing`` already adds ``user_instance_id``,
+so this one only requires :data:`instancing`."""
 stats = Tag("stats")
 """Adds traversal counters: ``nodes_visited``, ``primitives_tested`` and ``stack_overflow``."""
 

@@ -242,8 +242,13 @@ def refit(structure: PrimitiveAccelerationStructure, geometries: Any) -> Primiti
     """Recompute the boxes of ``structure`` for moved vertices, keeping its topology (Metal's refit).
 
     The geometries must have the same kinds and primitive counts as those the structure was built from.
-    Tree quality degrades as primitives move far from where they were built; rebuild then.
+    Tree quality degrades as primitives move far from where they were built; rebuild then. An instance
+    structure is refit with new :class:`~jaxrt.Instances` (same slot count; its children are kept).
     """
+    from jaxrt._src.instances import InstanceAccelerationStructure, refit_instances
+
+    if isinstance(structure, InstanceAccelerationStructure):
+        return refit_instances(structure, geometries)
     geometries = _as_geometry_tuple(geometries)
     info = tuple(GeometryInfo(g.kind, g.primitive_count, g.opaque) for g in geometries)
     if info != structure.geometry_info:
