@@ -8,10 +8,10 @@ import json
 import numpy as np
 import pytest
 
-from jaxrt.io import load_mesh
 from jaxrt.bench import main
 from jaxrt.bench.rays import diffuse_rays, primary_rays, shadow_rays
 from jaxrt.bench.scenes import noisy_sphere
+from jaxrt.io import load_mesh
 
 
 def test_quick_bench_writes_expected_json_and_jaxrt_matches_reference(tmp_path):
