@@ -10,6 +10,7 @@ Examples:
 """
 
 from jaxrt import intersection_functions, io, shading, tags
+from jaxrt._src.curves import CurveBasis, CurveEndCaps, CurveGeometry, CurveType
 from jaxrt._src.geometry import BoundingBoxGeometry, TriangleGeometry
 from jaxrt._src.instances import (
     InstanceAccelerationStructure,
@@ -27,6 +28,10 @@ __version__ = "0.1.0"
 
 __all__ = [
     "BoundingBoxGeometry",
+    "CurveBasis",
+    "CurveEndCaps",
+    "CurveGeometry",
+    "CurveType",
     "InstanceAccelerationStructure",
     "InstanceOptions",
     "Instances",
