@@ -397,3 +397,139 @@ def pack_segments(geometry: CurveGeometry) -> tuple[jax.Array, jax.Array]:
     )
     base_row = jnp.concatenate([base, jnp.zeros_like(base[:, :1])], axis=-1)[:, None, :]
     return jnp.concatenate([local, base_row, previous[:, None, :]], axis=1), flags
+
+
+# --- structures and the intersector ---------------------------------------------------------------------------
+
+
+class CurveLeafArrays(NamedTuple):
+    """The curve part of a structure's leaves, in unsorted slot order, padded to the capacity."""
+
+    segments: jax.Array  # (C, 6, 4) packed segments (zeros for triangles and padding)
+    flags: jax.Array  # (C,) int32 (IS_CURVE set on curve leaves)
+    lower: jax.Array  # (C, 3) segment boxes (meaningful where is_curve)
+    upper: jax.Array
+    is_curve: jax.Array  # (C,) bool
+
+    def no_triangles(self, geometry: CurveGeometry) -> jax.Array:
+        """Zero triangles standing in for a curve geometry's leaves in ``leaf_triangle``."""
+        return jnp.zeros((geometry.primitive_count, 3, 3), self.segments.dtype)
+
+
+def curve_leaves(geometries: tuple[Any, ...], capacity: int) -> CurveLeafArrays | None:
+    """Packed segments, flags and boxes of the curve geometries among ``geometries`` (``None`` without any).
+
+    Triangle geometries take zero rows, so that row ``i`` is the ``i``-th primitive over all geometries.
+    """
+    from jaxrt._src.primitives import curve as primitive
+
+    if not any(isinstance(g, CurveGeometry) for g in geometries):
+        return None
+    dtype = next(g.control_points.dtype for g in geometries if isinstance(g, CurveGeometry))
+    segments, flags = [], []
+    for g in geometries:
+        if isinstance(g, CurveGeometry):
+            packed, packed_flags = pack_segments(g)
+            segments.append(packed.astype(dtype))
+            flags.append(packed_flags | primitive.IS_CURVE)
+        else:
+            segments.append(jnp.zeros((g.primitive_count, 6, 4), dtype))
+            flags.append(jnp.zeros((g.primitive_count,), jnp.int32))
+    segments = jnp.concatenate(segments)
+    flags = jnp.concatenate(flags)
+    pad = capacity - segments.shape[0]
+    segments = jnp.pad(segments, ((0, pad), (0, 0), (0, 0)))
+    flags = jnp.pad(flags, (0, pad))
+    is_curve = (flags & primitive.IS_CURVE) != 0
+    lower, upper = primitive.segment_bounds(segments)
+    return CurveLeafArrays(segments, flags, lower, upper, is_curve)
+
+
+def curve_configuration(infos: tuple[CurveInfo, ...], curve_type: CurveType | None, options: Any) -> dict:
+    """Static code choices for the curve geometries of a structure: ``curve_types``, ``end_caps``, ``options``.
+
+    Only the types and caps present are compiled; linear-only structures use one exact round cone per segment
+    (one piece, no iteration) unless ``options`` is given.
+    """
+    from jaxrt._src.primitives import curve as primitive
+
+    types = {i.curve_type for i in infos} if curve_type is None else {curve_type}
+    curve_types = tuple(sorted(primitive.FLAT if t == CurveType.FLAT else primitive.ROUND for t in types))
+    code = {CurveEndCaps.NONE: primitive.CAP_NONE, CurveEndCaps.DISK: primitive.CAP_DISK}
+    end_caps = tuple(sorted({code.get(i.end_caps, primitive.CAP_SPHERE) for i in infos}))
+    if options is None:
+        linear = all(i.basis == CurveBasis.LINEAR for i in infos)
+        options = primitive.CurveOptions(pieces=1, iterations=0) if linear else primitive.DEFAULT_OPTIONS
+    return dict(curve_types=curve_types, end_caps=end_caps, options=options)
+
+
+class CurveLeaves:
+    """Ray/curve tests of BVH leaves (a :class:`~jaxrt._src.traversal.stack.LeafTester`)."""
+
+    def __init__(self, leaf_curve: jax.Array, leaf_flags: jax.Array, curve_types, end_caps, options):
+        self.leaf_curve = leaf_curve
+        self.leaf_flags = leaf_flags
+        self.config = dict(curve_types=curve_types, end_caps=end_caps, options=options)
+
+    def prepare(self, origin, direction):
+        from jaxrt._src.primitives import curve as primitive
+
+        return primitive.curve_ray(origin, direction)
+
+    def __call__(self, context, leaves, t_min, t_max):
+        from jaxrt._src.primitives import curve as primitive
+
+        index = jnp.maximum(leaves, 0)
+        test = lambda segment, flags: primitive.intersect(context, segment, flags, t_min, t_max, **self.config)  # noqa: E731
+        hit = jax.vmap(test)(self.leaf_curve[index], self.leaf_flags[index])
+        return hit.hit & (leaves >= 0), hit.distance
+
+
+class MixedLeaves:
+    """Triangle and curve leaves in one structure: both tests, selected by each leaf's kind."""
+
+    def __init__(self, triangles: Any, curves: CurveLeaves):
+        self.triangles = triangles
+        self.curves = curves
+
+    def prepare(self, origin, direction):
+        return self.triangles.prepare(origin, direction), self.curves.prepare(origin, direction)
+
+    def __call__(self, context, leaves, t_min, t_max):
+        from jaxrt._src.primitives import curve as primitive
+
+        triangle_hit, triangle_t = self.triangles(context[0], leaves, t_min, t_max)
+        curve_hit, curve_t = self.curves(context[1], leaves, t_min, t_max)
+        is_curve = (self.curves.leaf_flags[jnp.maximum(leaves, 0)] & primitive.IS_CURVE) != 0
+        return jnp.where(is_curve, curve_hit, triangle_hit), jnp.where(is_curve, curve_t, triangle_t)
+
+
+def curve_hit_fields(structure, leaf, hit, origin, direction, t_min, t_max, distance, config):
+    """For every ray, whether its hit is a curve, and that hit's differentiable ``(distance, u)``.
+
+    The traversal only picks the leaf: the chosen segment is tested again (exactly, for ``u``), then
+    :func:`jaxrt._src.primitives.curve.smooth_hit` attaches derivatives with respect to the segment's control
+    points and radii and to the ray, keeping the exact values.
+    """
+    from jaxrt._src.primitives import curve as primitive
+
+    stop = jax.lax.stop_gradient
+    flags = structure.leaf_curve_flags[leaf]
+    is_curve = hit & ((flags & primitive.IS_CURVE) != 0)
+    segment = structure.leaf_curve[leaf]
+    # Lanes without a curve hit get a dummy segment and ray (no NaN in their zero gradients).
+    dummy = jnp.zeros((6, 4), segment.dtype).at[:4, 0].set(jnp.array([0.0, 1 / 3, 2 / 3, 1.0])).at[:4, 3].set(0.5)
+    segment = jnp.where(is_curve[:, None, None], segment, dummy)
+    unit_z = jnp.array([0.0, 0.0, 1.0], origin.dtype)
+    ray_origin = jnp.where(is_curve[:, None], origin, jnp.array([0.5, 0.0, -1.0], origin.dtype))
+    ray_direction = jnp.where(is_curve[:, None], direction, unit_z)
+
+    def exact(o, d, s, f, lo, hi):
+        return primitive.intersect(primitive.curve_ray(o, d), s, f, lo, hi, **config)
+
+    again = jax.vmap(exact)(stop(ray_origin), stop(ray_direction), stop(segment), flags, t_min, t_max)
+    exact_t = jnp.where(is_curve, distance, 0.5)
+    part = jnp.where(is_curve, again.part, primitive.PART_TUBE)
+    u = jnp.where(is_curve, again.u, 0.5)
+    t, u = jax.vmap(primitive.smooth_hit)(ray_origin, ray_direction, segment, part, u, exact_t)
+    return is_curve, t, u

@@ -14,6 +14,11 @@ array               shape, dtype    contents
 ``leaf_geometry``   (C,) i32        geometry index of the primitive in leaf ``k``; -1 for padding
 ``leaf_primitive``  (C,) i32        primitive index within its geometry; -1 for padding
 ``leaf_triangle``   (C, 3, 3) f     the three vertices of leaf ``k``'s triangle, in leaf order (padding 0)
+``leaf_curve``      (C, 6, 4) f     with curves only (else ``None``): leaf ``k``'s curve segment packed by
+                                    :func:`jaxrt._src.curves.pack_segments` (cubic Bezier points relative to
+                                    the segment's first control point, that point, and the predecessor's
+                                    joint derivative); 0 for triangles and padding
+``leaf_curve_flags`` (C,) i32       with curves only: links, end caps, type, and a bit marking curve leaves
 ==================  ==============  ================================================================
 
 Internal node 0 is the root. Every leaf holds one primitive. Leaves past the primitive count are padding:
@@ -34,6 +39,7 @@ from jaxrt._src.bvh.boxes import child_boxes, range_boxes
 from jaxrt._src.bvh.morton import morton_codes
 from jaxrt._src.bvh.ploc import restructure
 from jaxrt._src.bvh.radix_tree import build_radix_tree
+from jaxrt._src.curves import CurveGeometry, CurveInfo, curve_leaves
 from jaxrt._src.geometry import TriangleGeometry
 from jaxrt._src.primitives import triangle
 
@@ -47,6 +53,7 @@ class GeometryInfo:
     kind: str
     primitive_count: int
     opaque: bool
+    curve: CurveInfo | None = None  # basis, control point count, type and end caps of a curve geometry
 
 
 @jax.tree_util.register_dataclass
@@ -66,6 +73,8 @@ class PrimitiveAccelerationStructure:
     leaf_primitive: jax.Array
     leaf_triangle: jax.Array
     geometry_info: tuple[GeometryInfo, ...] = dataclasses.field(metadata=dict(static=True))
+    leaf_curve: jax.Array | None = None
+    leaf_curve_flags: jax.Array | None = None
 
     @property
     def capacity(self) -> int:
@@ -97,8 +106,12 @@ def capacity_bucket(count: int, capacity: int | None = None) -> int:
     return max(2, 1 << (max(count, 1) - 1).bit_length())
 
 
+def _geometry_info(g: TriangleGeometry | CurveGeometry) -> GeometryInfo:
+    return GeometryInfo(g.kind, g.primitive_count, g.opaque, g.info if isinstance(g, CurveGeometry) else None)
+
+
 def _as_geometry_tuple(geometries: Any) -> tuple[TriangleGeometry, ...]:
-    if isinstance(geometries, TriangleGeometry):
+    if isinstance(geometries, TriangleGeometry | CurveGeometry):
         geometries = (geometries,)
     if not isinstance(geometries, Sequence) or isinstance(geometries, str):
         raise TypeError(
@@ -108,17 +121,20 @@ def _as_geometry_tuple(geometries: Any) -> tuple[TriangleGeometry, ...]:
     if not geometries:
         raise ValueError("build_primitive_structure: geometries is empty; a structure needs at least one geometry")
     for index, geometry in enumerate(geometries):
-        if not isinstance(geometry, TriangleGeometry):
+        if not isinstance(geometry, TriangleGeometry | CurveGeometry):
             raise TypeError(
                 f"build_primitive_structure: geometries[{index}] is a {type(geometry).__name__}; "
-                "supported geometry types: TriangleGeometry"
+                "supported geometry types: TriangleGeometry, CurveGeometry"
             )
     return geometries
 
 
 def _leaf_primitives(geometries: tuple[TriangleGeometry, ...], capacity: int):
     """Concatenated triangles, ids and boxes of all geometries, padded to ``capacity`` (unsorted)."""
-    triangles = jnp.concatenate([g.triangle_vertices() for g in geometries], axis=0)
+    curves = curve_leaves(geometries, capacity)  # None without curve geometries
+    triangles = jnp.concatenate(
+        [g.triangle_vertices() if g.kind == "triangle" else curves.no_triangles(g) for g in geometries], axis=0
+    )
     count = triangles.shape[0]
     geometry_id = jnp.concatenate([jnp.full((g.primitive_count,), i, jnp.int32) for i, g in enumerate(geometries)])
     primitive_id = jnp.concatenate([jnp.arange(g.primitive_count, dtype=jnp.int32) for g in geometries])
@@ -132,7 +148,10 @@ def _leaf_primitives(geometries: tuple[TriangleGeometry, ...], capacity: int):
     enterable = valid & triangle.has_area(triangles)
     lower = jnp.where(enterable[:, None], jnp.min(triangles, axis=1), jnp.inf)
     upper = jnp.where(enterable[:, None], jnp.max(triangles, axis=1), -jnp.inf)
-    return triangles, geometry_id, primitive_id, lower, upper, valid
+    if curves is not None:  # curve segments: their Bezier hull grown by the radius
+        lower = jnp.where(curves.is_curve[:, None], curves.lower, lower)
+        upper = jnp.where(curves.is_curve[:, None], curves.upper, upper)
+    return triangles, geometry_id, primitive_id, lower, upper, valid, curves
 
 
 def _node_boxes(children, node_range, leaf_lower, leaf_upper):
@@ -143,10 +162,14 @@ def _node_boxes(children, node_range, leaf_lower, leaf_upper):
 def _build(
     geometries: tuple[TriangleGeometry, ...], capacity: int, quality: str = "fast"
 ) -> PrimitiveAccelerationStructure:
-    triangles, geometry_id, primitive_id, lower, upper, valid = _leaf_primitives(geometries, capacity)
+    triangles, geometry_id, primitive_id, lower, upper, valid, curves = _leaf_primitives(geometries, capacity)
     # Codes from the triangles' own boxes: a zero-area triangle's empty box has no centroid.
     bounds = lax.stop_gradient(triangles)
-    codes = morton_codes(jnp.min(bounds, axis=1), jnp.max(bounds, axis=1), valid)
+    code_lower, code_upper = jnp.min(bounds, axis=1), jnp.max(bounds, axis=1)
+    if curves is not None:  # curve segments: the centroids of their boxes
+        code_lower = jnp.where(curves.is_curve[:, None], lax.stop_gradient(curves.lower), code_lower)
+        code_upper = jnp.where(curves.is_curve[:, None], lax.stop_gradient(curves.upper), code_upper)
+    codes = morton_codes(code_lower, code_upper, valid)
     order = jnp.arange(capacity, dtype=jnp.int32)
     codes, order = lax.sort((codes, order), num_keys=1, is_stable=True)
     children, first, last = build_radix_tree(codes)
@@ -158,7 +181,7 @@ def _build(
         order = order[position]
     leaf_lower, leaf_upper = lower[order], upper[order]
     node_lower, node_upper = _node_boxes(children, node_range, leaf_lower, leaf_upper)
-    info = tuple(GeometryInfo(g.kind, g.primitive_count, g.opaque) for g in geometries)
+    info = tuple(_geometry_info(g) for g in geometries)
     return PrimitiveAccelerationStructure(
         node_lower=lax.stop_gradient(node_lower),
         node_upper=lax.stop_gradient(node_upper),
@@ -168,6 +191,8 @@ def _build(
         leaf_primitive=primitive_id[order],
         leaf_triangle=triangles[order],
         geometry_info=info,
+        leaf_curve=None if curves is None else curves.segments[order],
+        leaf_curve_flags=None if curves is None else curves.flags[order],
     )
 
 
@@ -219,7 +244,7 @@ def build_primitive_structure(
 
 
 def _refit(structure: PrimitiveAccelerationStructure, geometries: tuple[TriangleGeometry, ...]):
-    triangles, _, _, lower, upper, _ = _leaf_primitives(geometries, structure.capacity)
+    triangles, _, _, lower, upper, _, curves = _leaf_primitives(geometries, structure.capacity)
     # Leaf k holds unsorted slot order[k]; recover it from the stored ids (slot = offset + primitive).
     offsets = jnp.cumsum(jnp.array([0] + [g.primitive_count for g in geometries[:-1]], jnp.int32))
     padding = structure.leaf_geometry < 0
@@ -232,6 +257,8 @@ def _refit(structure: PrimitiveAccelerationStructure, geometries: tuple[Triangle
         node_lower=lax.stop_gradient(node_lower),
         node_upper=lax.stop_gradient(node_upper),
         leaf_triangle=jnp.where(padding[:, None, None], 0.0, triangles[slot]),
+        leaf_curve=None if curves is None else jnp.where(padding[:, None, None], 0.0, curves.segments[slot]),
+        leaf_curve_flags=None if curves is None else jnp.where(padding, 0, curves.flags[slot]),
     )
 
 
@@ -250,7 +277,7 @@ def refit(structure: PrimitiveAccelerationStructure, geometries: Any) -> Primiti
     if isinstance(structure, InstanceAccelerationStructure):
         return refit_instances(structure, geometries)
     geometries = _as_geometry_tuple(geometries)
-    info = tuple(GeometryInfo(g.kind, g.primitive_count, g.opaque) for g in geometries)
+    info = tuple(_geometry_info(g) for g in geometries)
     if info != structure.geometry_info:
         raise ValueError(f"refit: geometries {info} do not match the structure's {structure.geometry_info}")
     return _refit_jit(structure, geometries)
