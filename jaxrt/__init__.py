@@ -19,6 +19,7 @@ from jaxrt._src.instances import (
     build_instance_structure,
 )
 from jaxrt._src.intersector import Intersector
+from jaxrt._src.primitives.curve import CurveOptions
 from jaxrt._src.numerics import offset_ray_origin
 from jaxrt._src.ray import Ray
 from jaxrt._src.result import IntersectionResult, IntersectionType
@@ -31,6 +32,7 @@ __all__ = [
     "CurveBasis",
     "CurveEndCaps",
     "CurveGeometry",
+    "CurveOptions",
     "CurveType",
     "InstanceAccelerationStructure",
     "InstanceOptions",

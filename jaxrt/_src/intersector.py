@@ -10,6 +10,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from jaxrt import tags as tag_module
+from jaxrt._src import curves as curve_support
 from jaxrt._src import intersect_instances as instancing
 from jaxrt._src.instances import InstanceAccelerationStructure
 from jaxrt._src.primitives import triangle
@@ -21,8 +22,14 @@ from jaxrt._src.traversal.stack import traverse, traverse_refill
 __all__ = ["Intersector"]
 
 _SUPPORTED_TAGS = frozenset(
-    ["triangle_data", "stats", "instancing", "max_levels", "world_space_data", "user_instance_id"]
+    ["triangle_data", "curve_data", "stats", "instancing", "max_levels", "world_space_data", "user_instance_id"]
 )
+#: Geometry kinds ``geometry_types`` may name (strings or ``rt.IntersectionType`` members).
+_GEOMETRY_TYPES = {
+    IntersectionType.TRIANGLE: "triangle",
+    IntersectionType.CURVE: "curve",
+    IntersectionType.BOUNDING_BOX: "bounding_box",
+}
 _CULL_MODES = ("none", "front", "back")
 _WINDINGS = ("clockwise", "counterclockwise")
 _BACKENDS = ("auto", "portable", "gpu")
@@ -73,8 +80,17 @@ class Intersector:
         from the ray origin, of a front-facing triangle. With right-handed coordinates a triangle is clockwise
         when ``dot(cross(v1 - v0, v2 - v0), ray.direction) > 0``.
       backend: ``"auto"``, ``"portable"`` (the vmapped stack traversal) or ``"gpu"``.
-      geometry_types, curve_basis, curve_type, curve_control_point_count, intersection_functions, filter,
-        max_hits: options for geometry kinds this version does not provide yet; they must be ``None``.
+      geometry_types: the geometry kinds the structures hold (Metal's ``assume_geometry_type``): one of, or a
+        collection of, ``"triangle"``, ``"curve"`` (or ``rt.IntersectionType`` members). Tracing a structure
+        with another kind is a ``ValueError``. ``None``: whatever the structure holds. Either way only the
+        kinds present are compiled: a triangle-only structure compiles no curve code.
+      curve_basis, curve_type, curve_control_point_count: what every curve geometry is (Metal's
+        ``assume_curve_*``): a ``rt.CurveBasis``, a ``rt.CurveType``, an int; checked at ``intersect``. The
+        compiled code already follows the structure's curve types, end caps and bases (linear-only
+        structures use the exact round-cone test).
+      curve_options: static accuracy knobs of the curve test (``rt.CurveOptions``; see docs/curves.md).
+      intersection_functions, filter, max_hits: options this version does not provide yet; they must be
+        ``None``.
 
     All options are static and hashable: an intersector can be closed over by ``jax.jit`` and used as a
     static argument.
@@ -105,6 +121,7 @@ class Intersector:
         intersection_functions: Any = None,
         filter: Any = None,  # noqa: A002 - Metal's name
         max_hits: Any = None,
+        curve_options: Any = None,
     ):
         for tag in tags:
             if not isinstance(tag, tag_module.Tag) or tag.name not in tag_module.KNOWN:
@@ -124,11 +141,20 @@ class Intersector:
             raise ValueError(f"Intersector: backend must be one of {_BACKENDS}, got {backend!r}")
         if not isinstance(accept_any_intersection, bool):
             raise ValueError(f"Intersector: accept_any_intersection must be a bool, got {accept_any_intersection!r}")
+        self.geometry_types = _geometry_types(geometry_types)
+        self.curve_basis = None if curve_basis is None else curve_support.CurveBasis.coerce(curve_basis, "Intersector")
+        self.curve_type = None if curve_type is None else curve_support.CurveType.coerce(curve_type, "Intersector")
+        if curve_control_point_count is not None and curve_control_point_count not in (2, 3, 4):
+            raise ValueError(
+                f"Intersector: curve_control_point_count must be 2, 3 or 4, got {curve_control_point_count!r}"
+            )
+        self.curve_control_point_count = curve_control_point_count
+        from jaxrt._src.primitives.curve import CurveOptions
+
+        if curve_options is not None and not isinstance(curve_options, CurveOptions):
+            raise TypeError(f"Intersector: curve_options must be an rt.CurveOptions, got {curve_options!r}")
+        self.curve_options = curve_options
         unsupported = dict(
-            geometry_types=geometry_types,
-            curve_basis=curve_basis,
-            curve_type=curve_type,
-            curve_control_point_count=curve_control_point_count,
             intersection_functions=intersection_functions,
             filter=filter,
             max_hits=max_hits,
@@ -149,6 +175,11 @@ class Intersector:
             self.triangle_cull_mode,
             self.front_facing_winding,
             self.backend,
+            self.geometry_types,
+            self.curve_basis,
+            self.curve_type,
+            self.curve_control_point_count,
+            self.curve_options,
         )
 
     def __hash__(self) -> int:
@@ -200,6 +231,7 @@ class Intersector:
                 f"Intersector.intersect: structure must be an acceleration structure, got {type(structure).__name__}"
             )
         instancing.check_levels(self, structure)  # instance nesting deeper than the tags handle
+        _check_geometry(self, structure)
         _resolve_backend(self)  # raises early, outside jit, when the GPU backend is forced but unavailable
         shape = rays.shape
         flat = rays.reshape(-1)
@@ -223,6 +255,58 @@ def _intersect_chunks(intersector: Intersector, rays: Ray, structure: Any, chunk
     split = jax.tree_util.tree_map(lambda a: a.reshape(-1, chunk, *a.shape[1:]), rays)
     out = lax.map(lambda r: _intersect_jit(intersector, r, structure), split)
     return jax.tree_util.tree_map(lambda a: a.reshape(-1, *a.shape[2:]), out)
+
+
+def _geometry_types(value: Any) -> tuple[str, ...] | None:
+    """``geometry_types`` as a sorted tuple of kind names."""
+    if value is None:
+        return None
+    items = [value] if isinstance(value, str | IntersectionType) else list(value)
+    kinds = set()
+    for item in items:
+        if isinstance(item, IntersectionType) and item in _GEOMETRY_TYPES:
+            kinds.add(_GEOMETRY_TYPES[item])
+        elif isinstance(item, str) and item in _GEOMETRY_TYPES.values():
+            kinds.add(item)
+        else:
+            names = sorted(_GEOMETRY_TYPES.values())
+            raise ValueError(f"Intersector: geometry_types must name kinds from {names}, got {item!r}")
+    return tuple(sorted(kinds))
+
+
+def _check_geometry(intersector: Intersector, structure: Any) -> None:
+    """The structure's kinds and curves against the intersector's declarations (and what it can trace)."""
+    if isinstance(structure, InstanceAccelerationStructure):
+        if any(s.leaf_curve is not None for s in structure.primitive_structures):
+            raise NotImplementedError("Intersector.intersect: curves below instances are not supported yet")
+        return
+    kinds = {g.kind for g in structure.geometry_info}
+    if intersector.backend == "gpu" and structure.leaf_curve is not None:
+        raise ValueError("Intersector: backend='gpu' cannot run: curves are not covered by the GPU kernel")
+    if intersector.geometry_types is not None and not kinds <= set(intersector.geometry_types):
+        raise ValueError(
+            f"Intersector.intersect: the structure holds geometry kinds {sorted(kinds)}, but the intersector "
+            f"declares geometry_types={list(intersector.geometry_types)}"
+        )
+    for index, info in enumerate(structure.geometry_info):
+        if info.curve is None:
+            continue
+        declared = dict(
+            curve_basis=(intersector.curve_basis, info.curve.basis),
+            curve_type=(intersector.curve_type, info.curve.curve_type),
+            curve_control_point_count=(intersector.curve_control_point_count, info.curve.control_point_count),
+        )
+        for name, (want, have) in declared.items():
+            if want is not None and want != have:
+                raise ValueError(
+                    f"Intersector.intersect: geometry {index} has {name}={getattr(have, 'value', have)!r}, but "
+                    f"the intersector declares {name}={getattr(want, 'value', want)!r}"
+                )
+
+
+def _curve_config(intersector: Intersector, structure: PrimitiveAccelerationStructure):
+    infos = tuple(g.curve for g in structure.geometry_info if g.curve is not None)
+    return curve_support.curve_configuration(infos, intersector.curve_type, intersector.curve_options)
 
 
 def _resolve_backend(intersector: Intersector) -> str:
@@ -260,6 +344,11 @@ def _trace_portable(intersector, structure, origin, direction, t_min, t_max, ena
     """The portable stack traversal over chunks of rays, with the refill driver (see traversal/stack.py)."""
     detached = lax.stop_gradient
     leaves = _TriangleLeaves(detached(structure.leaf_triangle), intersector._cull)
+    if structure.leaf_curve is not None:  # curves: their own test, or both tests selected per leaf
+        config = _curve_config(intersector, structure)
+        curves = curve_support.CurveLeaves(detached(structure.leaf_curve), structure.leaf_curve_flags, **config)
+        has_triangles = any(g.kind == "triangle" for g in structure.geometry_info)
+        leaves = curve_support.MixedLeaves(leaves, curves) if has_triangles else curves
     nodes = (detached(structure.node_lower), detached(structure.node_upper), structure.node_children)
     options = dict(any_hit=intersector.accept_any_intersection, stack_size=structure.max_depth)
     args = tuple(detached(a) for a in (origin, direction, t_min, t_max)) + (enabled,)
@@ -284,7 +373,7 @@ def _intersect_jit(
     t_max = jnp.where(enabled, rays.max_distance, 0.0)
 
     detached = lax.stop_gradient
-    if _resolve_backend(intersector) == "gpu":
+    if _resolve_backend(intersector) == "gpu" and structure.leaf_curve is None:
         from jaxrt._src.traversal import gpu
 
         found = gpu.trace(
@@ -299,11 +388,17 @@ def _intersect_jit(
 
     hit = found.leaf >= 0
     leaf = jnp.maximum(found.leaf, 0)
+    any_hit = hit
+    if structure.leaf_curve is not None:  # curve hits: re-tested differentiably; triangles take the rest
+        is_curve, curve_t, curve_u = curve_support.curve_hit_fields(
+            structure, leaf, hit, origin, direction, t_min, t_max, found.distance, _curve_config(intersector, structure)
+        )
+        hit = hit & ~is_curve
     fields: dict[str, Any] = {
         "type": jnp.where(hit, int(IntersectionType.TRIANGLE), int(IntersectionType.NONE)).astype(jnp.int32),
         "distance": None,
-        "primitive_id": jnp.where(hit, structure.leaf_primitive[leaf], -1),
-        "geometry_id": jnp.where(hit, structure.leaf_geometry[leaf], -1),
+        "primitive_id": jnp.where(any_hit, structure.leaf_primitive[leaf], -1),
+        "geometry_id": jnp.where(any_hit, structure.leaf_geometry[leaf], -1),
     }
     # Re-intersect the chosen triangle: exact values from the watertight test, gradients from a smooth one.
     vertices = structure.leaf_triangle[leaf]
@@ -325,10 +420,16 @@ def _intersect_jit(
         fields["triangle_barycentric_coord"] = jnp.stack([attach(u, smooth_u), attach(v, smooth_v)], axis=-1)
         front = clockwise if intersector.front_facing_winding == "clockwise" else ~clockwise
         fields["triangle_front_facing"] = hit & front
+    if structure.leaf_curve is not None:
+        fields["type"] = jnp.where(is_curve, int(IntersectionType.CURVE), fields["type"]).astype(jnp.int32)
+        fields["distance"] = jnp.where(is_curve, curve_t, fields["distance"])
+    if intersector.has("curve_data"):
+        curves = structure.leaf_curve is not None
+        fields["curve_parameter"] = jnp.where(is_curve, curve_u, 0.0) if curves else jnp.zeros_like(found.distance)
     if intersector.has("stats"):
         fields["nodes_visited"] = found.nodes_visited
         fields["primitives_tested"] = found.primitives_tested
         fields["stack_overflow"] = found.stack_overflow
     if intersector.has("instancing"):
-        fields.update(instancing.primitive_instance_fields(intersector, hit, vertices.dtype))
+        fields.update(instancing.primitive_instance_fields(intersector, any_hit, vertices.dtype))
     return IntersectionResult(fields)

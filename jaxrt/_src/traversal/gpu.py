@@ -87,6 +87,8 @@ def unavailable_reason(intersector: Any) -> str | None:
     uncovered = sorted({tag.name for tag in intersector.tags} - COVERED_TAGS)
     if uncovered:
         return f"tags {uncovered} are not covered by the GPU kernel"
+    if "curve" in (getattr(intersector, "geometry_types", None) or ()) or getattr(intersector, "curve_type", None):
+        return "curves are not covered by the GPU kernel (structures with curves take the portable traversal)"
     return _import_error()
 
 
