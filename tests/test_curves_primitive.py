@@ -37,7 +37,7 @@ END_ON = np.cos(np.radians(10.0))
 END_ON_DISTANCE = 10.0
 EPS32 = float(np.finfo(np.float32).eps)
 #: Float32 rounding of ray-space coordinates, in units of eps times the curve's distance from the ray origin.
-ROUNDING = 16
+ROUNDING = 32
 
 COMBOS = [("bezier", 4), ("bezier", 3), ("catmull_rom", 4), ("bspline", 4), ("bspline", 3), ("linear", 2)]
 RAYS = 64

@@ -17,11 +17,18 @@ Two parts:
 
 from __future__ import annotations
 
+import time
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
 
 __all__ = [
+    "main",
+    "hair_ball",
+    "tessellate",
+    "camera_rays",
+    "reference_scene",
     "ReferenceHits",
     "reference_hits",
     "reference_nearest",
@@ -402,3 +409,324 @@ def reference_nearest(origin, direction, t_min, t_max, segments: HostSegments, *
     close = out.hit & ~best & (np.abs(out.distance - distance[ray_index]) * length[ray_index] <= np.max(band))
     np.logical_or.at(ambiguous, ray_index, close)
     return np.isfinite(distance), distance, segment, u, ambiguous
+
+
+# --- the bench -------------------------------------------------------------------------------------------------
+
+#: Curve-test settings measured: ``(pieces, iterations)``; iterations 0 is the chord approximation.
+CURVE_SETTINGS = ((4, 0), (16, 0), (4, 2), (8, 3), (16, 4))
+#: Triangle tubes: ``(sides, rings per segment)``.
+TUBE_RATES = ((4, 1), (6, 2), (8, 4))
+_DEFAULTS = dict(rays=1 << 16, reference_rays=2048, repeats=3, strands=None)
+_QUICK = dict(rays=1 << 12, reference_rays=256, repeats=1, strands=600)
+SCENES = ("ponytail", "bear", "ball")
+_PONYTAIL = ("back.tfx", "front_top.tfx", "side.tfx", "tail.tfx")
+
+
+class HairScene(NamedTuple):
+    name: str
+    geometry: object  # jaxrt.CurveGeometry
+    width: float
+    source: str
+
+
+def hair_ball(strands: int = 2000, points: int = 8, *, seed: int = 0):
+    """A procedural hair ball: curly strands growing out of a unit sphere (``HairCurves``)."""
+    from jaxrt._src.io.hair import HairStrands, strands_to_curves
+
+    rng = np.random.default_rng(seed)
+    root = rng.normal(size=(strands, 3))
+    root /= np.linalg.norm(root, axis=1, keepdims=True)
+    direction = root + 0.4 * rng.normal(size=(strands, 3))
+    polyline = [root]
+    for _ in range(points - 1):
+        direction = direction + 0.5 * rng.normal(size=(strands, 3))
+        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+        polyline.append(polyline[-1] + 0.08 * direction)
+    pts = np.stack(polyline, axis=1).reshape(-1, 3).astype(np.float32)
+    return strands_to_curves(HairStrands(pts, np.full(strands, points), None), width=0.008)
+
+
+def load_scene(name: str, data_dir, strands: int | None, seed: int = 0) -> HairScene | None:
+    """A bench scene, or ``None`` when its files are not in ``data_dir``."""
+    from pathlib import Path
+
+    from jaxrt._src.io.hair import HairStrands, read_tfx, strands_to_curves
+
+    if name == "ball":
+        curves = hair_ball(strands or 2000, seed=seed)
+        return HairScene(name, curves.geometry(), 0.008, "procedural")
+    files = [f"tressfx-hair-ponytail/{f}" for f in _PONYTAIL] if name == "ponytail" else ["tressfx-fur-bear/bear.tfx"]
+    if data_dir is None or not all((Path(data_dir) / f).is_file() for f in files):
+        return None
+    parts = [read_tfx(Path(data_dir) / f) for f in files]
+    points = np.concatenate([p.points for p in parts])
+    counts = np.concatenate([p.counts for p in parts])
+    if strands is not None and strands < len(counts):  # an even subset of the strands
+        keep = np.linspace(0, len(counts) - 1, strands).astype(int)
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        points = np.concatenate([points[starts[k] : starts[k] + counts[k]] for k in keep])
+        counts = counts[keep]
+    # Strand width: a fifth of the mean distance between neighbouring points (TressFX stores none).
+    spacing = float(np.median(np.linalg.norm(np.diff(points[: counts[0]], axis=0), axis=1)))
+    width = 0.2 * spacing
+    curves = strands_to_curves(HairStrands(points, counts, None), width=width)
+    return HairScene(name, curves.geometry(), width, ", ".join(files))
+
+
+def camera_rays(geometry, count: int, *, seed: int = 0):
+    """Pinhole rays over the hair's bounding box, from the front and a little above (``(origin, direction)``)."""
+    points = np.asarray(geometry.control_points, np.float64)
+    lower, upper = points.min(0), points.max(0)
+    centre, size = 0.5 * (lower + upper), float(np.linalg.norm(upper - lower))
+    eye = centre + size * np.array([0.3, 0.4, 1.2])
+    forward = centre - eye
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, [0.0, 1.0, 0.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    side = int(np.sqrt(count))
+    s = (np.arange(side) + 0.5) / side * 2 - 1
+    x, y = np.meshgrid(s, -s)
+    half = 0.5 * size / np.linalg.norm(centre - eye) * 1.1
+    direction = forward + half * (x.reshape(-1, 1) * right + y.reshape(-1, 1) * up)
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    origin = np.broadcast_to(eye, direction.shape)
+    return origin.astype(np.float32), direction.astype(np.float32)
+
+
+def _candidates(origin, direction, segments: HostSegments, chunk: int = 256):
+    """(ray, segment) pairs whose float64 segment box the ray enters (the reference's broad phase)."""
+    from jaxrt._src.curves import CurveBasis, bezier_matrix
+
+    matrix = bezier_matrix(CurveBasis.coerce(segments.basis), segments.count)
+    bezier = np.einsum("ij,sjk->sik", matrix, segments.points)
+    reach = np.abs(bezier[..., 3]).max(axis=1, keepdims=True) * (1 + 1e-6)
+    lower = bezier[..., :3].min(axis=1) - reach
+    upper = bezier[..., :3].max(axis=1) + reach
+    rays, segs = [], []
+    d = np.asarray(direction, np.float64)
+    inv = 1.0 / np.where(d == 0, 1e-300, d)
+    o = np.asarray(origin, np.float64)
+    for start in range(0, len(o), chunk):
+        oo, ii = o[start : start + chunk, None], inv[start : start + chunk, None]
+        t0, t1 = (lower[None] - oo) * ii, (upper[None] - oo) * ii
+        near = np.minimum(t0, t1).max(axis=-1)
+        far = np.maximum(t0, t1).min(axis=-1)
+        r, s = np.nonzero((near <= far) & (far >= 0))
+        rays.append(r + start)
+        segs.append(s)
+    return np.concatenate(rays), np.concatenate(segs)
+
+
+def reference_scene(origin, direction, geometry, *, band: float, chunk: int = 8192):
+    """Float64 nearest hits (``hit, distance, ambiguous``) of rays against a curve geometry."""
+    segments = host_segments(geometry)
+    ray_index, segment_index = _candidates(origin, direction, segments)
+    r = len(origin)
+    distance = np.full(r, np.inf)
+    ambiguous = np.zeros(r, bool)
+    t_min, t_max = np.zeros(r), np.full(r, np.inf)
+    for start in range(0, len(ray_index), chunk):
+        ri, si = ray_index[start : start + chunk], segment_index[start : start + chunk]
+        out = reference_hits(origin, direction, t_min, t_max, segments, ri, si, band=band)
+        np.minimum.at(distance, ri, out.distance)
+        np.logical_or.at(ambiguous, ri, out.ambiguous)
+    return np.isfinite(distance), distance, ambiguous
+
+
+def tessellate(geometry, sides: int, rings: int):
+    """The segments as triangle tubes: ``rings`` pieces along each segment, ``sides`` around (open ends)."""
+    from jaxrt._src.curves import pack_segments
+    from jaxrt._src.primitives.curve import world_bezier
+
+    segments, _ = pack_segments(geometry)
+    bezier = np.asarray(world_bezier(segments), np.float64)
+    u = np.linspace(0.0, 1.0, rings + 1)
+    w = np.stack([(1 - u) ** 3, 3 * u * (1 - u) ** 2, 3 * u**2 * (1 - u), u**3], axis=1)
+    dw = np.stack([-3 * (1 - u) ** 2, 3 * (1 - u) ** 2 - 6 * u * (1 - u), 6 * u * (1 - u) - 3 * u**2, 3 * u**2], 1)
+    centre = np.einsum("uk,skc->suc", w, bezier)
+    tangent = np.einsum("uk,skc->suc", dw, bezier[..., :3])
+    tangent /= np.maximum(np.linalg.norm(tangent, axis=-1, keepdims=True), 1e-30)
+    helper = np.where((np.abs(tangent[..., :1]) < 0.6), [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    normal = np.cross(tangent, helper)
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    binormal = np.cross(tangent, normal)
+    angle = 2 * np.pi * np.arange(sides) / sides
+    ring = centre[..., None, :3] + np.abs(centre[..., 3])[..., None, None] * (
+        np.cos(angle)[:, None] * normal[..., None, :] + np.sin(angle)[:, None] * binormal[..., None, :]
+    )  # (S, rings + 1, sides, 3)
+    a, b = ring[:, :-1], ring[:, 1:]
+    a2, b2 = np.roll(a, -1, axis=2), np.roll(b, -1, axis=2)
+    quads = np.stack([np.stack([a, b, b2], axis=-2), np.stack([a, b2, a2], axis=-2)], axis=3)
+    return quads.reshape(-1, 3, 3).astype(np.float32)
+
+
+def _structure_bytes(structure) -> int:
+    return int(sum(np.asarray(leaf).nbytes for leaf in jax_leaves(structure)))
+
+
+def jax_leaves(tree):
+    import jax
+
+    return jax.tree_util.tree_leaves(tree)
+
+
+def _errors(hit, distance, ref_hit, ref_distance, ambiguous, length, radius):
+    decided = ~ambiguous
+    mismatch = decided & (hit != ref_hit)
+    both = decided & hit & ref_hit
+    error = np.abs(distance[both].astype(np.float64) - ref_distance[both]) * length[both] / radius
+    pick = lambda q: float(np.percentile(error, q)) if error.size else 0.0  # noqa: E731
+    return dict(
+        decided_rays=int(decided.sum()),
+        mismatches=int(mismatch.sum()),
+        mismatch_fraction=float(mismatch.sum() / max(decided.sum(), 1)),
+        error_median=pick(50),
+        error_p99=pick(99),
+        error_max=float(error.max()) if error.size else 0.0,
+    )
+
+
+def bench_scene(scene: HairScene, config: dict, *, seed: int = 0, log=print) -> dict:
+    """Every curve setting and tube rate on one scene: speed, error against the reference, memory."""
+    import jax
+    import jax.numpy as jnp
+
+    import jaxrt as rt
+    from jaxrt.bench.timing import timed
+
+    geometry = scene.geometry
+    radius = 0.5 * scene.width
+    origin, direction = camera_rays(geometry, config["rays"], seed=seed)
+    rays = rt.Ray(jnp.asarray(origin), jnp.asarray(direction))
+    # Reference rays: an even sample of the rays that pass through some segment's box (the rest miss anyway).
+    start = time.perf_counter()
+    near = np.unique(_candidates(origin, direction, host_segments(geometry))[0])
+    pick = near[np.linspace(0, len(near) - 1, min(config["reference_rays"], len(near))).astype(int)]
+    ref_hit, ref_distance, ambiguous = reference_scene(origin[pick], direction[pick], geometry, band=1e-2 * radius)
+    reference_s = time.perf_counter() - start
+    length = np.linalg.norm(direction[pick], axis=1).astype(np.float64)
+    out = dict(
+        scene=scene.name,
+        source=scene.source,
+        segments=geometry.primitive_count,
+        radius=radius,
+        rays=len(origin),
+        reference_rays=len(pick),
+        reference_hit_fraction=float(ref_hit.mean()),
+        reference_s=reference_s,
+        rows=[],
+    )
+    log(f"{scene.name}: {geometry.primitive_count} segments, radius {radius:.4g}, {len(origin)} rays "
+        f"({len(pick)} checked, reference {reference_s:.1f} s, {ref_hit.mean():.0%} hit)")  # fmt: skip
+
+    def measure(method, setting, structure, intersector, segments):
+        timing, result = timed(lambda: intersector.intersect(rays, structure).distance, config["repeats"])
+        distance = np.asarray(result)[pick]
+        row = dict(
+            method=method,
+            setting=setting,
+            mrays_s=len(origin) / timing.median_s / 1e6,
+            compile_s=timing.compile_s,
+            bytes_per_segment=_structure_bytes(structure) / segments,
+            **_errors(np.isfinite(distance), distance, ref_hit, ref_distance, ambiguous, length, radius),
+        )
+        out["rows"].append(row)
+        log(_row_text(row))
+        return row
+
+    build = jax.jit(rt.build_primitive_structure)
+    structure = build(geometry)
+    for pieces, iterations in config["settings"]:
+        options = rt.CurveOptions(pieces=pieces, iterations=iterations)
+        name = "chord" if iterations == 0 else "newton"
+        measure(
+            f"curve {name}",
+            f"{pieces} pieces, {iterations} it",
+            structure,
+            rt.Intersector(curve_options=options),
+            geometry.primitive_count,
+        )
+    for sides, rings in config["tubes"]:
+        triangles = rt.TriangleGeometry(tessellate(geometry, sides, rings).reshape(-1, 3))
+        tube = rt.build_primitive_structure(triangles)
+        measure("triangle tube", f"{sides} sides x {rings} rings", tube, rt.Intersector(), geometry.primitive_count)
+        del tube
+    return out
+
+
+def _row_text(row: dict) -> str:
+    return (
+        f"  {row['method']:<14} {row['setting']:<20} {row['mrays_s']:8.3f} Mrays/s  compile {row['compile_s']:5.1f} s  "
+        f"mismatch {row['mismatches']:4d}/{row['decided_rays']:<5d} error/r median {row['error_median']:.1e} "
+        f"p99 {row['error_p99']:.1e} max {row['error_max']:.1e}  {row['bytes_per_segment']:7.0f} B/segment"
+    )
+
+
+def format_table(results: dict) -> str:
+    """The Pareto table: one block per scene."""
+    lines = []
+    for scene in results["scenes"]:
+        lines.append(
+            f"{scene['scene']} ({scene['segments']} segments, radius {scene['radius']:.3g}, {scene['rays']} rays, "
+            f"{scene['reference_rays']} against the float64 reference)"
+        )
+        lines.append(
+            "| method | setting | Mrays/s | compile s | hit/miss mismatches | error/r median | p99 | max | bytes/segment |"
+        )
+        lines.append("|---|---|---|---|---|---|---|---|---|")
+        for r in scene["rows"]:
+            lines.append(
+                f"| {r['method']} | {r['setting']} | {r['mrays_s']:.3f} | {r['compile_s']:.1f} | "
+                f"{r['mismatches']}/{r['decided_rays']} | {r['error_median']:.1e} | {r['error_p99']:.1e} | "
+                f"{r['error_max']:.1e} | {r['bytes_per_segment']:.0f} |"
+            )
+        lines.append("")
+    return "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    """Run the curve bench; print the table; return every number (also written with ``--json``)."""
+    import argparse
+
+    from jaxrt.bench.report import machine_info, write_json
+    from jaxrt.bench.scenes import default_data_dir
+
+    parser = argparse.ArgumentParser(prog="python -m jaxrt.bench.curves", description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="small sizes and one repeat (a smoke test)")
+    parser.add_argument("--json", metavar="PATH", help="also write every number and the machine info to PATH")
+    parser.add_argument("--data", metavar="DIR", help="shared data folder (default: $JAXRT_DATA_DIR or ../shared/data)")
+    parser.add_argument("--scenes", nargs="+", choices=SCENES, help="default: ponytail and bear (ball without data)")
+    parser.add_argument("--rays", type=int)
+    parser.add_argument("--reference-rays", type=int)
+    parser.add_argument("--strands", type=int, help="use an even subset of this many strands per scene")
+    parser.add_argument("--repeats", type=int)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    config = dict(_QUICK if args.quick else _DEFAULTS)
+    for key in ("rays", "reference_rays", "strands", "repeats"):
+        if getattr(args, key) is not None:
+            config[key] = getattr(args, key)
+    config["settings"] = CURVE_SETTINGS
+    config["tubes"] = TUBE_RATES
+    data_dir = args.data or default_data_dir()
+    names = args.scenes or (["ponytail"] if args.quick else ["ponytail", "bear"])
+    start = time.perf_counter()
+    results = dict(machine=machine_info(), config={k: v for k, v in config.items()}, scenes=[])
+    for name in names:
+        scene = load_scene(name, data_dir, config["strands"], args.seed)
+        if scene is None:
+            print(f"{name}: not in the data folder {data_dir}; the procedural hair ball instead", flush=True)
+            scene = load_scene("ball", None, config["strands"], args.seed)
+        results["scenes"].append(bench_scene(scene, config, seed=args.seed, log=lambda s: print(s, flush=True)))
+    results["total_s"] = time.perf_counter() - start
+    print()
+    print(format_table(results))
+    if args.json:
+        write_json(results, args.json)
+    return results
+
+
+if __name__ == "__main__":
+    main()

@@ -181,6 +181,24 @@ def _bernstein(u: np.ndarray) -> np.ndarray:
     return np.array([1, 3, 3, 1]) * u**k * (1 - u) ** (3 - k)
 
 
+def _combine(weights: np.ndarray, points: jax.Array) -> jax.Array:
+    """``weights @ points`` for a constant ``(m, 4)`` matrix, as a sum of scaled rows.
+
+    (XLA on the CPU runs tiny batched matrix products far slower than the same multiply-adds written out.)
+    """
+    weights = np.asarray(weights, np.float64)
+    rows = [
+        sum(float(weights[i, k]) * points[k] for k in range(weights.shape[1]) if weights[i, k] != 0)
+        for i in range(weights.shape[0])
+    ]
+    return jnp.stack([r if not isinstance(r, int) else jnp.zeros_like(points[0]) for r in rows])
+
+
+def _rotate(v: jax.Array, frame: jax.Array) -> jax.Array:
+    """``v @ frame.T`` for ``v`` ``(..., 3)`` written as multiply-adds (see :func:`_combine`)."""
+    return jnp.stack([v[..., 0] * f[0] + v[..., 1] * f[1] + v[..., 2] * f[2] for f in frame], axis=-1)
+
+
 def _evaluate(c: jax.Array, u: jax.Array):
     """Value, first and second derivative at ``u`` of power-basis coefficients ``c`` ``(4, k)``."""
     value = c[0] + u * (c[1] + u * (c[2] + u * c[3]))
@@ -292,9 +310,9 @@ def intersect(
     dtype = segment.dtype
     scale_t = ray.inv_length
     # Ray space: x, y across the ray, z along the unit direction (world length units), r unchanged.
-    rel = ((segment[4, :3] - ray.origin) + segment[:4, :3]) @ ray.frame.T
+    rel = _rotate((segment[4, :3] - ray.origin) + segment[:4, :3], ray.frame)
     q = jnp.concatenate([rel, segment[:4, 3:]], axis=-1)
-    dprev = jnp.concatenate([segment[5, :3] @ ray.frame.T, segment[5, 3:]])
+    dprev = jnp.concatenate([_rotate(segment[5, :3], ray.frame), segment[5, 3:]])
     lo, hi = t_min / scale_t, t_max / scale_t  # interval in world length along the unit direction
     has_previous = (flags & HAS_PREVIOUS) != 0
     has_next = (flags & HAS_NEXT) != 0
@@ -316,8 +334,7 @@ def intersect(
 
 
 def _samples(q: jax.Array, pieces: int) -> jax.Array:
-    weights = jnp.asarray(_bernstein(np.linspace(0.0, 1.0, pieces + 1)), q.dtype)
-    return weights @ q
+    return _combine(_bernstein(np.linspace(0.0, 1.0, pieces + 1)), q)
 
 
 def _nearest(valid, t, u, lo, hi, margin):
@@ -330,7 +347,7 @@ def _nearest(valid, t, u, lo, hi, margin):
 def _round(q, dprev, has_previous, has_next, caps, lo, hi, noise, end_caps, options: CurveOptions):
     n = options.pieces
     h = 1.0 / n
-    power = jnp.asarray(_TO_POWER, q.dtype) @ q
+    power = _combine(_TO_POWER, q)
     sample = _samples(q, n)
     sample = sample.at[:, 3].set(jnp.abs(sample[:, 3]))
     grow = _chord_bound(q, n) if options.iterations > 0 else jnp.zeros((), q.dtype)
@@ -356,22 +373,20 @@ def _round(q, dprev, has_previous, has_next, caps, lo, hi, noise, end_caps, opti
     )
 
     if options.iterations > 0:
-        # Where no chord is hit, the curve may still be, within the chord bound of a chord: the nearest
-        # such piece (by the 2D distance of the ray to the chord in ray space) starts the search. A chord
-        # hit is preferred to these, whose distances are only bounds.
+        # Pieces whose chord passes within the chord bound of the ray may hold a hit of the true curve even
+        # where no chord is hit (a thin curve bending away from its chords): each runs a few steps towards
+        # the ray's closest approach to the true curve, which decides whether the curve is touched there
+        # (well conditioned, unlike the entry point near a silhouette), and gives an entry estimate.
         p0, p1 = sample[:-1, :2], sample[1:, :2] - sample[:-1, :2]
         length2 = _norm2(p1)
         s = jnp.clip(-jnp.sum(p0 * p1, axis=-1) / jnp.where(length2 > 0, length2, 1.0), 0.0, 1.0)
         reach = sample[:-1, 3] + s * (sample[1:, 3] - sample[:-1, 3]) + grow
         near = _norm2(p0 + s[:, None] * p1) <= reach * reach
-        t_near = sample[:-1, 2] + s * (sample[1:, 2] - sample[:-1, 2]) - reach
-        near_ok, _, near_u = _nearest(near, t_near, (index + s) * h, lo, hi, margin)
-        found = chord_ok | near_ok
-        u = jnp.where(chord_ok, chord_u, near_u)
+        power_n = power[:, :, None]
 
         def closest(u):
             """h(u) = p . p' - r r' (half the derivative of |p|^2 - r^2) and its derivative."""
-            (x, y, _z, r), (dx, dy, _dz, dr), (ddx, ddy, _ddz, ddr) = _evaluate(power, u)
+            (x, y, _z, r), (dx, dy, _dz, dr), (ddx, ddy, _ddz, ddr) = _evaluate(power_n, u)
             return x * dx + y * dy - r * dr, dx * dx + dy * dy + x * ddx + y * ddy - dr * dr - r * ddr
 
         def approach(_, carry):
@@ -385,23 +400,25 @@ def _round(q, dprev, has_previous, has_next, caps, lo, hi, noise, end_caps, opti
             good = (slope > 0) & (step >= a) & (step <= b)  # (a converged step may land on a bracket end)
             return jnp.where(good, step, 0.5 * (a + b)), a, b
 
-        # The closest approach decides whether the true curve is touched at all (well conditioned, unlike
-        # the entry point near a silhouette); it also starts Newton where the chord misses.
+        u = (index + s) * h
         a, b = jnp.clip(u - h, 0.0, 1.0), jnp.clip(u + h, 0.0, 1.0)
         u_close, _, _ = lax.fori_loop(0, options.approach_iterations, approach, (u, a, b), unroll=UNROLL)
         # Without a sign change in the bracket the iteration drifts; the closest of it and the two ends wins.
         tries = jnp.stack([u_close, a, b])
-        (x, y, _z, r), _, _ = _evaluate(power[:, :, None], tries)
-        u_close = tries[jnp.argmin(x * x + y * y - r * r)]
-        (x, y, z, r), (dx, dy, dz, _), _ = _evaluate(power, u_close)
+        (x, y, _z, r), _, _ = _evaluate(power[:, :, None, None], tries)
+        u_close = jnp.take_along_axis(tries, jnp.argmin(x * x + y * y - r * r, axis=0)[None], axis=0)[0]
+        (x, y, z, r), (dx, dy, dz, _), _ = _evaluate(power_n, u_close)
         depth = _diff_of_squares(jnp.abs(r), jnp.sqrt(x * x + y * y))
-        touches = found & (depth >= -2.0 * noise * (jnp.abs(r) + noise))
+        touching = near & (depth >= -2.0 * noise * (jnp.abs(r) + noise))
         # The entry into a straight tube through the closest approach: u_close + shift (exact for lines).
         across2 = dx * dx + dy * dy
         shift = -dz * jnp.sqrt(jnp.maximum(depth, 0.0)) / jnp.sqrt(jnp.maximum(across2 * (across2 + dz * dz), 1e-30))
         u_entry = jnp.clip(u_close + jnp.clip(shift, -h, h), 0.0, 1.0)
-        (x, y, z, r), _, _ = _evaluate(power, u_entry)
+        (x, y, z, r), _, _ = _evaluate(power_n, u_entry)
         t_entry = z - jnp.sqrt(jnp.maximum(_diff_of_squares(jnp.abs(r), jnp.sqrt(x * x + y * y)), 0.0))
+        touch_ok, t_entry, u_entry = _nearest(touching, t_entry, u_entry, lo, hi, margin)
+        touches = jnp.any(touching)
+        found = chord_ok | touch_ok
         (x, y, z, r), _, _ = _evaluate(power, chord_u)
         t_chord = z - jnp.sqrt(jnp.maximum(_diff_of_squares(jnp.abs(r), jnp.sqrt(x * x + y * y)), 0.0))
         # Two starts, refined side by side: the chord's hit (good for thick curves) and the entry through the
@@ -435,8 +452,14 @@ def _round(q, dprev, has_previous, has_next, caps, lo, hi, noise, end_caps, opti
         tol = options.tolerance * radius + noise
         off_sphere = jnp.abs(jnp.sqrt(x * x + y * y + w * w) - radius)
         off_envelope = jnp.abs(-x * dx - y * dy + w * dz + r * dr)
-        converged = found & (off_sphere <= tol) & (off_envelope <= tol * (speed + jnp.abs(dr)))
         g_u = -(dx * dx + dy * dy + dz * dz) - x * ddx - y * ddy + w * ddz + dr * dr + r * ddr
+        # The step Newton would still take in t: near a silhouette t changes much for a small residual, so a
+        # slow iterate can be close to the sphere and the envelope and still far from the entry.
+        f = x * x + y * y + w * w - r * r
+        g = -x * dx - y * dy + w * dz + r * dr
+        det = -2.0 * g * dz - 2.0 * w * g_u
+        remaining = jnp.abs(2.0 * g * g + f * g_u) / jnp.maximum(jnp.abs(det), jnp.finfo(q.dtype).tiny)
+        converged = found & (off_sphere <= tol) & (off_envelope <= tol * (speed + jnp.abs(dr))) & (remaining <= tol)
         slack = 1e-6
         valid = converged & (w <= 0) & (g_u <= 0) & (u >= -slack) & (u <= 1 + slack) & (t >= lo) & (t <= hi)
         pick = jnp.argmin(jnp.where(valid, t, jnp.inf))
@@ -505,7 +528,7 @@ def _pick(candidates, lo, hi):
 def _flat(q, dprev, has_previous, has_next, caps, lo, hi, noise, end_caps, options: CurveOptions):
     n = options.pieces
     h = 1.0 / n
-    power = jnp.asarray(_TO_POWER, q.dtype) @ q
+    power = _combine(_TO_POWER, q)
     sample = _samples(q, n)
     grow = _chord_bound(q, n) if options.iterations > 0 else jnp.zeros((), q.dtype)
     # The chords in ray space: the ray's closest point on each, its depth, and the chord's half-width there.
@@ -538,28 +561,30 @@ def _flat(q, dprev, has_previous, has_next, caps, lo, hi, noise, end_caps, optio
             [interior | ((jnp.arange(n) == 0) & ends[0]) | ((jnp.arange(n) == n - 1) & ends[1]), kink]
         )
         near &= jnp.concatenate([closest2 <= grown * grown, vertex2 <= vertex_grown**2])
-        near_ok, _, near_u = _nearest(near, t_all - grow, u_all, lo, hi, grow)
-        found = chord_ok | near_ok
-        start = jnp.where(chord_ok, chord_u, near_u)
+        # Newton on every candidate at once (it is one-dimensional and cheap): every crossing near the
+        # polyline is found, and the nearest valid one wins.
+        start = u_all
         window_lo, window_hi = jnp.maximum(start - h, 0.0), jnp.minimum(start + h, 1.0)
+        power_n = power[:, :, None]
 
         def newton(_, u):
             # Newton on g(u) = p . p' = 0: the ray lies on the ribbon's cross-section line at u.
-            (x, y, _z, _r), (dx, dy, _dz, _dr), (ddx, ddy, _ddz, _ddr) = _evaluate(power, u)
+            (x, y, _z, _r), (dx, dy, _dz, _dr), (ddx, ddy, _ddz, _ddr) = _evaluate(power_n, u)
             g = x * dx + y * dy
             g_u = dx * dx + dy * dy + x * ddx + y * ddy
             step = jnp.where(g_u == 0, 0.0, -g / jnp.where(g_u == 0, 1.0, g_u))
             return jnp.clip(u + step, window_lo, window_hi)
 
         u = lax.fori_loop(0, options.iterations, newton, start, unroll=UNROLL)
-        (x, y, z, r), (dx, dy, _dz, _dr), _ = _evaluate(power, u)
+        (x, y, z, r), (dx, dy, _dz, _dr), _ = _evaluate(power_n, u)
         speed = jnp.sqrt(dx * dx + dy * dy)
-        converged = found & (jnp.abs(x * dx + y * dy) <= (options.tolerance * jnp.abs(r) + noise) * speed)
+        converged = near & (jnp.abs(x * dx + y * dy) <= (options.tolerance * jnp.abs(r) + noise) * speed)
         slack = 1e-6
         inside = (x * x + y * y <= r * r) & (u >= -slack) & (u <= 1 + slack) & (z >= lo) & (z <= hi)
+        ribbon_ok, z, u = _nearest(converged & inside, z, u, lo, hi, 0.0)
         # No chord fallback: where Newton does not converge the true ribbon is usually not crossed there
         # (a chord crossing within the chord bound of the curve's silhouette).
-        ribbon_ok, ribbon_t, ribbon_u = converged & inside, z, jnp.clip(u, 0.0, 1.0)
+        ribbon_t, ribbon_u = z, jnp.clip(u, 0.0, 1.0)
     else:
         ribbon_ok, ribbon_t, ribbon_u = chord_ok & (chord_t >= lo), chord_t, chord_u
 
