@@ -19,8 +19,8 @@ from jaxrt._src.instances import (
     build_instance_structure,
 )
 from jaxrt._src.intersector import Intersector
-from jaxrt._src.primitives.curve import CurveOptions
 from jaxrt._src.numerics import offset_ray_origin
+from jaxrt._src.primitives.curve import CurveOptions
 from jaxrt._src.ray import Ray
 from jaxrt._src.result import IntersectionResult, IntersectionType
 from jaxrt._src.structures import PrimitiveAccelerationStructure, build_primitive_structure, refit
