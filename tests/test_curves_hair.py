@@ -115,3 +115,15 @@ def test_shared_tressfx_assets(name):
     curves = load_hair(DATA / name, width=0.1)
     geometry = rt.CurveGeometry(*curves[:3], **curves.options)
     assert geometry.primitive_count == strands_count * (per_strand - 1)
+
+
+def test_bench_pieces_without_tracing():
+    """The curve bench's scene, tubes and reference (numpy only; the traced part runs in the bench itself)."""
+    from jaxrt.bench.curves import camera_rays, hair_ball, reference_scene, tessellate
+
+    geometry = hair_ball(2000).geometry()
+    triangles = tessellate(geometry, 4, 2)
+    assert triangles.shape == (geometry.primitive_count * 4 * 2 * 2, 3, 3)
+    origin, direction = camera_rays(geometry, 256)
+    hit, distance, ambiguous = reference_scene(origin, direction, geometry, band=1e-4)
+    assert hit.any() and np.isfinite(distance[hit]).all() and len(ambiguous) == 256

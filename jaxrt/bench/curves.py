@@ -417,7 +417,7 @@ def reference_nearest(origin, direction, t_min, t_max, segments: HostSegments, *
 CURVE_SETTINGS = ((4, 0), (16, 0), (4, 2), (8, 3), (16, 4))
 #: Triangle tubes: ``(sides, rings per segment)``.
 TUBE_RATES = ((4, 1), (6, 2), (8, 4))
-_DEFAULTS = dict(rays=1 << 16, reference_rays=2048, repeats=3, strands=None)
+_DEFAULTS = dict(rays=1 << 16, reference_rays=512, repeats=3, strands=None)
 _QUICK = dict(rays=1 << 12, reference_rays=256, repeats=1, strands=600)
 SCENES = ("ponytail", "bear", "ball")
 _PONYTAIL = ("back.tfx", "front_top.tfx", "side.tfx", "tail.tfx")
@@ -495,7 +495,7 @@ def camera_rays(geometry, count: int, *, seed: int = 0):
     return origin.astype(np.float32), direction.astype(np.float32)
 
 
-def _candidates(origin, direction, segments: HostSegments, chunk: int = 256):
+def _candidates(origin, direction, segments: HostSegments):
     """(ray, segment) pairs whose float64 segment box the ray enters (the reference's broad phase)."""
     from jaxrt._src.curves import CurveBasis, bezier_matrix
 
@@ -508,6 +508,7 @@ def _candidates(origin, direction, segments: HostSegments, chunk: int = 256):
     d = np.asarray(direction, np.float64)
     inv = 1.0 / np.where(d == 0, 1e-300, d)
     o = np.asarray(origin, np.float64)
+    chunk = max(1, (1 << 22) // max(len(lower), 1))  # rays per pass: a few tens of MB of temporaries
     for start in range(0, len(o), chunk):
         oo, ii = o[start : start + chunk, None], inv[start : start + chunk, None]
         t0, t1 = (lower[None] - oo) * ii, (upper[None] - oo) * ii
@@ -600,10 +601,9 @@ def bench_scene(scene: HairScene, config: dict, *, seed: int = 0, log=print) -> 
     radius = 0.5 * scene.width
     origin, direction = camera_rays(geometry, config["rays"], seed=seed)
     rays = rt.Ray(jnp.asarray(origin), jnp.asarray(direction))
-    # Reference rays: an even sample of the rays that pass through some segment's box (the rest miss anyway).
+    # Reference rays: an even sample of the image (the camera frames the hair, so most of them come near it).
     start = time.perf_counter()
-    near = np.unique(_candidates(origin, direction, host_segments(geometry))[0])
-    pick = near[np.linspace(0, len(near) - 1, min(config["reference_rays"], len(near))).astype(int)]
+    pick = np.linspace(0, len(origin) - 1, min(config["reference_rays"], len(origin))).astype(int)
     ref_hit, ref_distance, ambiguous = reference_scene(origin[pick], direction[pick], geometry, band=1e-2 * radius)
     reference_s = time.perf_counter() - start
     length = np.linalg.norm(direction[pick], axis=1).astype(np.float64)
@@ -648,6 +648,14 @@ def bench_scene(scene: HairScene, config: dict, *, seed: int = 0, log=print) -> 
             rt.Intersector(curve_options=options),
             geometry.primitive_count,
         )
+    # The gain of specialisation: the same hair in a structure that also holds a far-away flat segment with
+    # disk caps, so that the compiled test handles both types and all caps present.
+    far = np.asarray(geometry.control_points).max(0) + 1e3
+    other = rt.CurveGeometry(far + np.eye(3, dtype=np.float32)[:2], [0.1, 0.1], [0], basis="linear",
+                             control_point_count=2, curve_type="flat", end_caps="disk")  # fmt: skip
+    generic = build([geometry, other])
+    measure("curve generic", "8 pieces, 3 it", generic, rt.Intersector(), geometry.primitive_count)
+    del generic
     for sides, rings in config["tubes"]:
         triangles = rt.TriangleGeometry(tessellate(geometry, sides, rings).reshape(-1, 3))
         tube = rt.build_primitive_structure(triangles)
@@ -703,13 +711,18 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--strands", type=int, help="use an even subset of this many strands per scene")
     parser.add_argument("--repeats", type=int)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--settings", nargs="+", metavar="P,I", help="curve settings as pieces,iterations (default: the table's five)"
+    )
+    parser.add_argument("--tubes", nargs="+", metavar="S,R", help="tube rates as sides,rings (default: three)")
     args = parser.parse_args(argv)
     config = dict(_QUICK if args.quick else _DEFAULTS)
     for key in ("rays", "reference_rays", "strands", "repeats"):
         if getattr(args, key) is not None:
             config[key] = getattr(args, key)
-    config["settings"] = CURVE_SETTINGS
-    config["tubes"] = TUBE_RATES
+    pairs = lambda items: tuple(tuple(int(x) for x in item.split(",")) for item in items)  # noqa: E731
+    config["settings"] = pairs(args.settings) if args.settings else CURVE_SETTINGS
+    config["tubes"] = pairs(args.tubes) if args.tubes else TUBE_RATES
     data_dir = args.data or default_data_dir()
     names = args.scenes or (["ponytail"] if args.quick else ["ponytail", "bear"])
     start = time.perf_counter()

@@ -21,14 +21,18 @@ ray crosses a joint once: no gap, no second hit. The free ends of a chain get th
 a disk spanning the tube's end circle, or the end sphere.
 
 **Method** (chosen by measurement, see ``docs/curves.md``): the segment is sampled at ``pieces + 1``
-parameters in ray space; each piece is a round cone (a linearly varying sphere swept along the chord,
-intersected exactly in closed form) inflated by a bound on the distance between curve and chord
-(``0.75 h^2`` times the largest second difference of the Bezier control points, ``h = 1 / pieces``), so
-that no hit of the true curve is missed. The nearest piece hit then seeds ``iterations`` Newton steps on the
-true cubic, on the two equations above in ``(u, t)`` (round) or on ``p . p' = 0`` in ``u`` (flat). When Newton
-does not converge, the exact hit of the un-inflated chord is the answer (an error of at most the chord
-distance). Caps and joints are exact sphere, disk or ribbon-end tests. With ``iterations = 0`` the method is
-the chord approximation (a linear curve is exact with one piece and no iteration).
+parameters in ray space; each piece is a round cone (a linearly varying sphere swept along the chord) whose
+entry is found exactly in closed form. Pieces whose chord passes within a bound of the curve's distance to its
+chords (``0.75 h^2`` times the largest second difference of the Bezier control points, ``h = 1 / pieces``)
+run a few safeguarded Newton steps towards the ray's closest approach to the true curve, which decides
+whether the curve is touched there and gives an entry estimate (exact for a straight tube). ``iterations``
+Newton steps on the true cubic then refine two starts side by side (the nearest chord hit and the nearest
+closest-approach entry), on the two equations above in ``(u, t)``; a solution counts when it is on the
+sphere and the envelope and the step Newton would still take is within ``tolerance`` of the radius. Where
+Newton fails but the curve is touched, the exact hit of the chord is the answer (an error of at most the
+chord bound). Ribbons run Newton on ``p . p' = 0`` from every candidate crossing of the chords at once and
+keep the nearest. Caps and joints are exact sphere, disk or ribbon-end tests. With ``iterations = 0`` the
+method is the chord approximation (a linear curve is exact with one piece and no iteration).
 
 **Gradients.** :func:`smooth_hit` recomputes the chosen hit in world space, differentiably: a Newton step
 from the (detached) solution with a detached Jacobian gives the implicit-function derivative of ``(u, t)``
