@@ -17,7 +17,6 @@ import numpy as np
 from hair import LIGHT, catmull_rom_tangent, data_folder, kajiya_kay
 
 import jaxrt as rt
-from jaxrt._src.io.hair import load_hair  # (to be exported as rt.io.load_hair)
 
 
 def main(argv=None) -> dict:
@@ -32,7 +31,7 @@ def main(argv=None) -> dict:
     data = data_folder(args.data)
     path = data / "tressfx-fur-bear" / "bear.tfx" if data else None
     if path and path.is_file():
-        curves, name = load_hair(path, basis="catmull_rom", width=args.width_of_strand), "bear"
+        curves, name = rt.io.load_hair(path, basis="catmull_rom", width=args.width_of_strand), "bear"
     else:
         from jaxrt.bench.curves import hair_ball
 

@@ -20,7 +20,6 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxrt as rt
-from jaxrt._src.io.hair import load_hair  # (to be exported as rt.io.load_hair)
 
 LIGHT = np.array([0.5, 0.9, 0.6]) / np.linalg.norm([0.5, 0.9, 0.6])
 
@@ -58,7 +57,7 @@ def scene(data: Path | None):
     """``(geometries, curves, name, eye, target)``; curves is the hair's :class:`HairCurves`."""
     sintel = data / "tressfx-hair-sintel" if data else None
     if sintel and (sintel / "sintel_hair.tfx").is_file():
-        curves = load_hair(sintel / "sintel_hair.tfx", basis="catmull_rom", width=0.12)
+        curves = rt.io.load_hair(sintel / "sintel_hair.tfx", basis="catmull_rom", width=0.12)
         vertices, faces = rt.io.load_mesh(sintel / "sintel_bust.obj")
         bust = rt.TriangleGeometry(vertices, faces)
         hair = curves.geometry(end_caps="sphere")
