@@ -10,6 +10,7 @@ Examples:
 """
 
 from jaxrt import intersection_functions, io, shading, tags
+from jaxrt._src.candidate import BoundingBoxCandidate, TriangleCandidate
 from jaxrt._src.curves import CurveBasis, CurveEndCaps, CurveGeometry, CurveType
 from jaxrt._src.geometry import BoundingBoxGeometry, TriangleGeometry
 from jaxrt._src.instances import (
@@ -18,9 +19,10 @@ from jaxrt._src.instances import (
     Instances,
     build_instance_structure,
 )
-from jaxrt._src.intersector import Intersector
+from jaxrt._src.intersector import Intersector, count_intersections
 from jaxrt._src.numerics import offset_ray_origin
 from jaxrt._src.primitives.curve import CurveOptions
+from jaxrt._src.query import IntersectionQuery, intersection_query
 from jaxrt._src.ray import Ray
 from jaxrt._src.result import IntersectionResult, IntersectionType
 from jaxrt._src.structures import PrimitiveAccelerationStructure, build_primitive_structure, refit
@@ -28,6 +30,7 @@ from jaxrt._src.structures import PrimitiveAccelerationStructure, build_primitiv
 __version__ = "0.1.0"
 
 __all__ = [
+    "BoundingBoxCandidate",
     "BoundingBoxGeometry",
     "CurveBasis",
     "CurveEndCaps",
@@ -37,15 +40,19 @@ __all__ = [
     "InstanceAccelerationStructure",
     "InstanceOptions",
     "Instances",
+    "IntersectionQuery",
     "IntersectionResult",
     "IntersectionType",
     "Intersector",
     "PrimitiveAccelerationStructure",
     "Ray",
+    "TriangleCandidate",
     "TriangleGeometry",
     "build_instance_structure",
     "build_primitive_structure",
+    "count_intersections",
     "intersection_functions",
+    "intersection_query",
     "io",
     "offset_ray_origin",
     "refit",

@@ -11,18 +11,29 @@ from jax import lax
 
 from jaxrt import tags as tag_module
 from jaxrt._src import curves as curve_support
+from jaxrt._src import custom_leaves as custom
 from jaxrt._src import intersect_instances as instancing
 from jaxrt._src.instances import InstanceAccelerationStructure
+from jaxrt._src.primitive_data import data_at
 from jaxrt._src.primitives import triangle
 from jaxrt._src.ray import Ray
 from jaxrt._src.result import IntersectionResult, IntersectionType
 from jaxrt._src.structures import PrimitiveAccelerationStructure
 from jaxrt._src.traversal.stack import traverse, traverse_refill
 
-__all__ = ["Intersector"]
+__all__ = ["Intersector", "count_intersections"]
 
 _SUPPORTED_TAGS = frozenset(
-    ["triangle_data", "curve_data", "stats", "instancing", "max_levels", "world_space_data", "user_instance_id"]
+    [
+        "triangle_data",
+        "curve_data",
+        "stats",
+        "instancing",
+        "max_levels",
+        "world_space_data",
+        "user_instance_id",
+        "primitive_data",
+    ]
 )
 #: Geometry kinds ``geometry_types`` may name (strings or ``rt.IntersectionType`` members).
 _GEOMETRY_TYPES = {
@@ -89,8 +100,20 @@ class Intersector:
         compiled code already follows the structure's curve types, end caps and bases (linear-only
         structures use the exact round-cone test).
       curve_options: static accuracy knobs of the curve test (``rt.CurveOptions``; see docs/curves.md).
-      intersection_functions, filter, max_hits: options this version does not provide yet; they must be
-        ``None``.
+      intersection_functions: mapping from the index of a ``rt.BoundingBoxGeometry`` in the structure to
+        ``fn(ray, candidate) -> (accept, distance)``, an ordinary JAX function of one ray (an ``rt.Ray`` whose
+        ``max_distance`` is the nearest accepted distance so far) and one
+        :class:`~jaxrt.BoundingBoxCandidate`. It is called on every box the ray enters, nearer subtrees
+        first; the nearest accepted distance inside ``[min_distance, max_distance]`` is the hit. Hits are
+        differentiable through the function (it is called again on the chosen box with gradients).
+      filter: ``fn(candidate) -> accept`` for triangles of non-opaque geometry (``opaque=False``): called on
+        each such candidate hit (an :class:`~jaxrt.TriangleCandidate`, with barycentrics and primitive data);
+        rejected candidates do not end the search (alpha testing). Opaque geometry never uses it; non-opaque
+        triangles without a filter are accepted.
+      max_hits: static ``K``: return the ``K`` nearest hits per ray, sorted by distance, on an axis after the
+        batch axes of every hit field (``distance`` is ``(..., K)``, ``triangle_barycentric_coord``
+        ``(..., K, 2)``), plus ``hit_count`` (hits returned) and ``hit_overflow`` (more than ``K`` existed).
+        Not with ``accept_any_intersection``.
 
     All options are static and hashable: an intersector can be closed over by ``jax.jit`` and used as a
     static argument.
@@ -154,14 +177,17 @@ class Intersector:
         if curve_options is not None and not isinstance(curve_options, CurveOptions):
             raise TypeError(f"Intersector: curve_options must be an rt.CurveOptions, got {curve_options!r}")
         self.curve_options = curve_options
-        unsupported = dict(
-            intersection_functions=intersection_functions,
-            filter=filter,
-            max_hits=max_hits,
-        )
-        for name, value in unsupported.items():
-            if value is not None:
-                raise NotImplementedError(f"Intersector: {name} is not supported in this version (got {value!r})")
+        self.intersection_functions = _functions(intersection_functions)
+        if filter is not None and not callable(filter):
+            raise TypeError(f"Intersector: filter must be a callable fn(candidate) -> accept, got {filter!r}")
+        self.filter = filter
+        if max_hits is not None:
+            if isinstance(max_hits, bool) or not isinstance(max_hits, int) or max_hits < 1:
+                raise ValueError(f"Intersector: max_hits must be a positive int, got {max_hits!r}")
+            if accept_any_intersection:
+                raise ValueError("Intersector: max_hits and accept_any_intersection exclude each other")
+        self.max_hits = max_hits
+        self._count_all = False  # set by count_intersections
         self.tags = tuple(sorted(set(tags)))
         self.accept_any_intersection = accept_any_intersection
         self.triangle_cull_mode = triangle_cull_mode
@@ -180,6 +206,10 @@ class Intersector:
             self.curve_type,
             self.curve_control_point_count,
             self.curve_options,
+            self.intersection_functions,
+            self.filter,
+            self.max_hits,
+            self._count_all,
         )
 
     def __hash__(self) -> int:
@@ -231,6 +261,7 @@ class Intersector:
                 f"Intersector.intersect: structure must be an acceleration structure, got {type(structure).__name__}"
             )
         instancing.check_levels(self, structure)  # instance nesting deeper than the tags handle
+        _check_instanced_options(self, structure)
         _check_geometry(self, structure)
         _resolve_backend(self)  # raises early, outside jit, when the GPU backend is forced but unavailable
         shape = rays.shape
@@ -257,6 +288,70 @@ def _intersect_chunks(intersector: Intersector, rays: Ray, structure: Any, chunk
     return jax.tree_util.tree_map(lambda a: a.reshape(-1, *a.shape[2:]), out)
 
 
+def _functions(value: Any) -> tuple[tuple[int, Any], ...] | None:
+    """``intersection_functions`` as a sorted tuple of ``(geometry index, fn)`` pairs (hashable)."""
+    if value is None:
+        return None
+    if not isinstance(value, dict):
+        raise TypeError(
+            f"Intersector: intersection_functions must be a dict {{geometry index: fn}}, got {type(value).__name__}"
+        )
+    for index, fn in value.items():
+        if isinstance(index, bool) or not isinstance(index, int) or index < 0:
+            raise ValueError(f"Intersector: intersection_functions keys must be geometry indices, got {index!r}")
+        if not callable(fn):
+            raise TypeError(f"Intersector: the intersection function of geometry {index} is not callable: {fn!r}")
+    return tuple(sorted(value.items(), key=lambda item: item[0]))
+
+
+def count_intersections(rays: Ray, structure: PrimitiveAccelerationStructure, intersector: Intersector | None = None):
+    """The number of accepted hits along each ray (no culling: every primitive the ray crosses in its interval).
+
+    Useful for inside/outside parity tests and depth complexity. ``intersector`` supplies cull mode,
+    intersection functions and the filter (default: ``rt.Intersector()``). A ray through an edge or vertex
+    shared by several triangles of a mesh counts each triangle the watertight test accepts there.
+
+    Returns:
+      int32 counts with the batch shape of ``rays``.
+
+    Examples:
+      >>> import jaxrt as rt
+      >>> quad = rt.TriangleGeometry([[0., 0, 0], [1, 0, 0], [0, 1, 0], [1., 0, 1], [1, 1, 1], [0, 1, 1]])
+      >>> s = rt.build_primitive_structure(quad)
+      >>> int(rt.count_intersections(rt.Ray([.2, .2, -1], [0., 0, 1]), s))
+      1
+    """
+    import copy
+
+    base = Intersector() if intersector is None else intersector
+    if not isinstance(base, Intersector):
+        raise TypeError(f"count_intersections: intersector must be an rt.Intersector, got {type(base).__name__}")
+    if base.max_hits is not None or base.accept_any_intersection:
+        raise ValueError("count_intersections: the intersector must not set max_hits or accept_any_intersection")
+    counting = copy.copy(base)
+    counting.tags = ()
+    counting._count_all = True
+    return counting.intersect(rays, structure).hit_count
+
+
+def _check_instanced_options(intersector: Intersector, structure: Any) -> None:
+    """Options the instanced traversal does not provide yet: a ``NotImplementedError`` naming them."""
+    if not isinstance(structure, InstanceAccelerationStructure):
+        return
+    options = dict(
+        max_hits=intersector.max_hits is not None,
+        count_intersections=intersector._count_all,
+        filter=intersector.filter is not None,
+        intersection_functions=intersector.intersection_functions is not None,
+        primitive_data=intersector.has("primitive_data"),
+    )
+    used = [name for name, on in options.items() if on]
+    if any(s.leaf_box is not None for s in structure.primitive_structures):
+        used.append("bounding-box geometry")
+    if used:
+        raise NotImplementedError(f"Intersector.intersect: {', '.join(used)} below instances are not supported yet")
+
+
 def _geometry_types(value: Any) -> tuple[str, ...] | None:
     """``geometry_types`` as a sorted tuple of kind names."""
     if value is None:
@@ -277,12 +372,17 @@ def _geometry_types(value: Any) -> tuple[str, ...] | None:
 def _check_geometry(intersector: Intersector, structure: Any) -> None:
     """The structure's kinds and curves against the intersector's declarations (and what it can trace)."""
     if isinstance(structure, InstanceAccelerationStructure):
-        if any(s.leaf_curve is not None for s in structure.primitive_structures):
-            raise NotImplementedError("Intersector.intersect: curves below instances are not supported yet")
+        for primitive_structure in structure.primitive_structures:
+            _check_geometry(intersector, primitive_structure)
         return
     kinds = {g.kind for g in structure.geometry_info}
-    if intersector.backend == "gpu" and structure.leaf_curve is not None:
-        raise ValueError("Intersector: backend='gpu' cannot run: curves are not covered by the GPU kernel")
+    if intersector.backend == "gpu" and _gpu_declines(intersector, structure):
+        raise ValueError(f"Intersector: backend='gpu' cannot run: {_gpu_declines(intersector, structure)}")
+    custom.check_user_functions(intersector, structure)
+    if intersector.has("primitive_data") and structure.leaf_primitive_data is None:
+        raise ValueError(
+            "Intersector.intersect: tags.primitive_data needs a structure built from geometries with primitive_data"
+        )
     if intersector.geometry_types is not None and not kinds <= set(intersector.geometry_types):
         raise ValueError(
             f"Intersector.intersect: the structure holds geometry kinds {sorted(kinds)}, but the intersector "
@@ -307,6 +407,19 @@ def _check_geometry(intersector: Intersector, structure: Any) -> None:
 def _curve_config(intersector: Intersector, structure: PrimitiveAccelerationStructure):
     infos = tuple(g.curve for g in structure.geometry_info if g.curve is not None)
     return curve_support.curve_configuration(infos, intersector.curve_type, intersector.curve_options)
+
+
+def _gpu_declines(intersector: Intersector, structure: PrimitiveAccelerationStructure) -> str | None:
+    """Why the GPU kernel does not cover this structure with this intersector (``None`` when it does)."""
+    if structure.leaf_curve is not None:
+        return "curves are not covered by the GPU kernel"
+    if structure.leaf_box is not None:
+        return "bounding-box geometry (intersection functions) is not covered by the GPU kernel"
+    if custom.filtered_geometries(intersector, structure):
+        return "filters on non-opaque geometry are not covered by the GPU kernel"
+    if intersector.max_hits is not None or intersector._count_all:
+        return "multi-hit (max_hits) and counting are not covered by the GPU kernel"
+    return None
 
 
 def _resolve_backend(intersector: Intersector) -> str:
@@ -340,17 +453,43 @@ def _chunked(fn, args, chunk: int):
     return jax.tree_util.tree_map(lambda a: a.reshape(n, *a.shape[2:]), out)
 
 
-def _trace_portable(intersector, structure, origin, direction, t_min, t_max, enabled):
-    """The portable stack traversal over chunks of rays, with the refill driver (see traversal/stack.py)."""
+def _leaf_tester(intersector: Intersector, structure: PrimitiveAccelerationStructure, user_code: bool = True):
+    """The leaf tests the structure's kinds need: triangles (filtered where non-opaque), curves, boxes.
+
+    Without ``user_code`` neither the filter nor intersection functions are called: box leaves never hit and
+    non-opaque triangles are tested as opaque ones (an intersection query decides them itself).
+    """
     detached = lax.stop_gradient
-    leaves = _TriangleLeaves(detached(structure.leaf_triangle), intersector._cull)
+    filtered = custom.filtered_geometries(intersector, structure) if user_code else ()
+    if filtered:
+        clockwise_front = intersector.front_facing_winding == "clockwise"
+        leaves = custom.FilteredTriangleLeaves(
+            structure, intersector._cull, clockwise_front, intersector.filter, filtered
+        )
+    else:
+        leaves = _TriangleLeaves(detached(structure.leaf_triangle), intersector._cull)
+    kinds = {g.kind for g in structure.geometry_info}
     if structure.leaf_curve is not None:  # curves: their own test, or both tests selected per leaf
         config = _curve_config(intersector, structure)
         curves = curve_support.CurveLeaves(detached(structure.leaf_curve), structure.leaf_curve_flags, **config)
-        has_triangles = any(g.kind == "triangle" for g in structure.geometry_info)
-        leaves = curve_support.MixedLeaves(leaves, curves) if has_triangles else curves
+        leaves = curve_support.MixedLeaves(leaves, curves) if "triangle" in kinds else curves
+    if structure.leaf_box is not None and user_code:  # boxes: the user's functions, alone or per leaf
+        boxes = custom.BoxLeaves(structure, intersector.intersection_functions)
+        leaves = boxes if kinds == {"bounding_box"} else custom.KindLeaves(leaves, boxes, structure)
+    return leaves
+
+
+def _trace_portable(intersector, structure, origin, direction, t_min, t_max, enabled):
+    """The portable stack traversal over chunks of rays, with the refill driver (see traversal/stack.py)."""
+    detached = lax.stop_gradient
+    leaves = _leaf_tester(intersector, structure)
     nodes = (detached(structure.node_lower), detached(structure.node_upper), structure.node_children)
-    options = dict(any_hit=intersector.accept_any_intersection, stack_size=structure.max_depth)
+    options = dict(
+        any_hit=intersector.accept_any_intersection,
+        stack_size=structure.max_depth,
+        max_hits=0 if intersector._count_all else intersector.max_hits,
+        count_all=intersector._count_all,
+    )
     args = tuple(detached(a) for a in (origin, direction, t_min, t_max)) + (enabled,)
     if PORTABLE_DRIVER == "vmap":
         return _chunked(jax.vmap(functools.partial(traverse, *nodes, leaves, **options)), args, CPU_CHUNK)
@@ -359,46 +498,34 @@ def _trace_portable(intersector, structure, origin, direction, t_min, t_max, ena
     return _chunked(functools.partial(traverse_refill, *nodes, leaves, **options, lanes=lanes), args, chunk)
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def _intersect_jit(
-    intersector: Intersector, rays: Ray, structure: PrimitiveAccelerationStructure | InstanceAccelerationStructure
-) -> IntersectionResult:
-    if isinstance(structure, InstanceAccelerationStructure):
-        return instancing.intersect_instances(intersector, rays, structure)
-    enabled = _enabled(rays)
-    unit_z = jnp.array([0.0, 0.0, 1.0], rays.direction.dtype)
-    origin = jnp.where(enabled[:, None], rays.origin, 0.0)
-    direction = jnp.where(enabled[:, None], rays.direction, unit_z)
-    t_min = jnp.where(enabled, rays.min_distance, 0.0)
-    t_max = jnp.where(enabled, rays.max_distance, 0.0)
+def _hit_fields(intersector, structure, origin, direction, t_min, t_max, leaf, distance) -> dict[str, Any]:
+    """The hit fields of rays whose traversal found ``leaf`` (``-1``: a miss) at ``distance``.
 
+    The chosen primitive is intersected again: exact values from the test the traversal ran, gradients from
+    a smooth formula (triangles), the curve's smooth hit, or the user's function called with gradients.
+    """
     detached = lax.stop_gradient
-    if _resolve_backend(intersector) == "gpu" and structure.leaf_curve is None:
-        from jaxrt._src.traversal import gpu
-
-        found = gpu.trace(
-            structure,
-            *(detached(a) for a in (origin, direction, t_min, t_max)),
-            enabled,
-            any_hit=intersector.accept_any_intersection,
-            cull=intersector._cull,
-        )
-    else:
-        found = _trace_portable(intersector, structure, origin, direction, t_min, t_max, enabled)
-
-    hit = found.leaf >= 0
-    leaf = jnp.maximum(found.leaf, 0)
-    any_hit = hit
+    unit_z = jnp.array([0.0, 0.0, 1.0], direction.dtype)
+    found = leaf >= 0
+    leaf = jnp.maximum(leaf, 0)
+    hit = found  # triangle hits, once the other kinds are taken out
+    infos = structure.geometry_info
     if structure.leaf_curve is not None:  # curve hits: re-tested differentiably; triangles take the rest
         is_curve, curve_t, curve_u = curve_support.curve_hit_fields(
-            structure, leaf, hit, origin, direction, t_min, t_max, found.distance, _curve_config(intersector, structure)
+            structure, leaf, hit, origin, direction, t_min, t_max, distance, _curve_config(intersector, structure)
         )
         hit = hit & ~is_curve
+    if structure.leaf_box is not None:
+        is_box_table = jnp.asarray([g.kind == "bounding_box" for g in infos] + [False])
+        is_box = found & is_box_table[structure.leaf_geometry[leaf]]
+        box_t = _box_distance(intersector, structure, leaf, is_box, origin, direction, t_min, distance)
+        hit = hit & ~is_box
+    kind = jnp.where(hit, int(IntersectionType.TRIANGLE), int(IntersectionType.NONE))
     fields: dict[str, Any] = {
-        "type": jnp.where(hit, int(IntersectionType.TRIANGLE), int(IntersectionType.NONE)).astype(jnp.int32),
+        "type": None,
         "distance": None,
-        "primitive_id": jnp.where(any_hit, structure.leaf_primitive[leaf], -1),
-        "geometry_id": jnp.where(any_hit, structure.leaf_geometry[leaf], -1),
+        "primitive_id": jnp.where(found, structure.leaf_primitive[leaf], -1),
+        "geometry_id": jnp.where(found, structure.leaf_geometry[leaf], -1),
     }
     # Re-intersect the chosen triangle: exact values from the watertight test, gradients from a smooth one.
     vertices = structure.leaf_triangle[leaf]
@@ -413,7 +540,7 @@ def _intersect_jit(
     def attach(exact, smooth):
         return jnp.where(hit, detached(exact) + (smooth - detached(smooth)), 0.0)
 
-    fields["distance"] = jnp.where(hit, attach(found.distance, smooth_t), jnp.inf)
+    fields["distance"] = jnp.where(hit, attach(distance, smooth_t), jnp.inf)
     if intersector.has("triangle_data"):
         sheared = jax.vmap(triangle.shear_ray)(detached(origin), detached(direction))
         u, v, clockwise = jax.vmap(triangle.barycentrics)(sheared, detached(vertices))
@@ -421,15 +548,88 @@ def _intersect_jit(
         front = clockwise if intersector.front_facing_winding == "clockwise" else ~clockwise
         fields["triangle_front_facing"] = hit & front
     if structure.leaf_curve is not None:
-        fields["type"] = jnp.where(is_curve, int(IntersectionType.CURVE), fields["type"]).astype(jnp.int32)
+        kind = jnp.where(is_curve, int(IntersectionType.CURVE), kind)
         fields["distance"] = jnp.where(is_curve, curve_t, fields["distance"])
+    if structure.leaf_box is not None:
+        kind = jnp.where(is_box, int(IntersectionType.BOUNDING_BOX), kind)
+        fields["distance"] = jnp.where(is_box, box_t, fields["distance"])
+    fields["type"] = kind.astype(jnp.int32)
     if intersector.has("curve_data"):
         curves = structure.leaf_curve is not None
-        fields["curve_parameter"] = jnp.where(is_curve, curve_u, 0.0) if curves else jnp.zeros_like(found.distance)
+        fields["curve_parameter"] = jnp.where(is_curve, curve_u, 0.0) if curves else jnp.zeros_like(distance)
+    if intersector.has("primitive_data"):
+        fields["primitive_data"] = data_at(structure.leaf_primitive_data, leaf, found)
+    if intersector.has("instancing"):
+        fields.update(instancing.primitive_instance_fields(intersector, found, vertices.dtype))
+    return fields
+
+
+def _box_distance(intersector, structure, leaf, is_box, origin, direction, t_min, distance):
+    """Box hit distances: the traversal's value, with the gradient of the function called again on the box."""
+    detached = lax.stop_gradient
+    arrays = (structure.leaf_box, structure.leaf_geometry, structure.leaf_primitive, structure.leaf_primitive_data)
+    # Lanes without a box hit call the function with a harmless ray (no NaN in their zero gradients).
+    ray_origin = jnp.where(is_box[:, None], origin, 0.0)
+    ray_direction = jnp.where(is_box[:, None], direction, jnp.array([0.0, 0.0, 1.0], direction.dtype))
+    t_max = jnp.where(is_box, detached(distance), 1.0)
+
+    def one(o, d, lo, hi, k):
+        ray = custom.function_ray(o, d, lo, hi)
+        return custom.call_function(intersector.intersection_functions, ray, custom.box_candidate(arrays, k))
+
+    accept, smooth = jax.vmap(one)(ray_origin, ray_direction, jnp.where(is_box, t_min, 0.0), t_max, leaf)
+    attached = detached(distance) + jnp.where(accept, smooth - detached(smooth), 0.0)
+    return jnp.where(is_box, attached, jnp.inf)
+
+
+def _trace(intersector, structure, origin, direction, t_min, t_max, enabled):
+    """Run the traversal the intersector and structure call for (the GPU kernel where it covers them)."""
+    detached = lax.stop_gradient
+    if _resolve_backend(intersector) == "gpu" and _gpu_declines(intersector, structure) is None:
+        from jaxrt._src.traversal import gpu
+
+        return gpu.trace(
+            structure,
+            *(detached(a) for a in (origin, direction, t_min, t_max)),
+            enabled,
+            any_hit=intersector.accept_any_intersection,
+            cull=intersector._cull,
+        )
+    return _trace_portable(intersector, structure, origin, direction, t_min, t_max, enabled)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _intersect_jit(
+    intersector: Intersector, rays: Ray, structure: PrimitiveAccelerationStructure | InstanceAccelerationStructure
+) -> IntersectionResult:
+    if isinstance(structure, InstanceAccelerationStructure):
+        return instancing.intersect_instances(intersector, rays, structure)
+    enabled = _enabled(rays)
+    unit_z = jnp.array([0.0, 0.0, 1.0], rays.direction.dtype)
+    origin = jnp.where(enabled[:, None], rays.origin, 0.0)
+    direction = jnp.where(enabled[:, None], rays.direction, unit_z)
+    t_min = jnp.where(enabled, rays.min_distance, 0.0)
+    t_max = jnp.where(enabled, rays.max_distance, 0.0)
+    found = _trace(intersector, structure, origin, direction, t_min, t_max, enabled)
+    if intersector._count_all:
+        return IntersectionResult({"hit_count": found.hits.total})
+    if intersector.max_hits is None:
+        fields = _hit_fields(intersector, structure, origin, direction, t_min, t_max, found.leaf, found.distance)
+    else:  # the same fields for each of the K hits, on an axis after the ray axis
+        k = intersector.max_hits
+        repeat = lambda a: jnp.repeat(a, k, axis=0)  # noqa: E731
+        flat = _hit_fields(
+            intersector,
+            structure,
+            *(repeat(a) for a in (origin, direction, t_min, t_max)),
+            found.hits.leaf.reshape(-1),
+            found.hits.distance.reshape(-1),
+        )
+        fields = jax.tree_util.tree_map(lambda a: a.reshape(-1, k, *a.shape[1:]), flat)
+        fields["hit_count"] = jnp.minimum(found.hits.total, k)
+        fields["hit_overflow"] = found.hits.total > k
     if intersector.has("stats"):
         fields["nodes_visited"] = found.nodes_visited
         fields["primitives_tested"] = found.primitives_tested
         fields["stack_overflow"] = found.stack_overflow
-    if intersector.has("instancing"):
-        fields.update(instancing.primitive_instance_fields(intersector, any_hit, vertices.dtype))
     return IntersectionResult(fields)

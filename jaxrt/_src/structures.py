@@ -19,9 +19,16 @@ array               shape, dtype    contents
                                     the segment's first control point, that point, and the predecessor's
                                     joint derivative); 0 for triangles and padding
 ``leaf_curve_flags`` (C,) i32       with curves only: links, end caps, type, and a bit marking curve leaves
+``leaf_box``        (C, 2, 3) f     with bounding-box geometry only (else ``None``): lower and upper corner of
+                                    leaf ``k``'s box primitive; empty for other leaves and padding
+``leaf_primitive_data`` pytree      with primitive data only (else ``None``): every geometry's
+                                    ``primitive_data`` in leaf order, leaves of shape ``(C, ...)``; rows of
+                                    geometries without data and of padding are zeros
 ==================  ==============  ================================================================
 
-Internal node 0 is the root. Every leaf holds one primitive. Leaves past the primitive count are padding:
+The kind of a leaf (triangle, curve, bounding box) and whether it is opaque follow from its geometry index
+and the static :class:`GeometryInfo` of that geometry. Internal node 0 is the root. Every leaf holds one
+primitive. Leaves past the primitive count are padding:
 their boxes are empty, so no ray enters them and they never show in results.
 """
 
@@ -40,7 +47,8 @@ from jaxrt._src.bvh.morton import morton_codes
 from jaxrt._src.bvh.ploc import restructure
 from jaxrt._src.bvh.radix_tree import build_radix_tree
 from jaxrt._src.curves import CurveGeometry, CurveInfo, curve_leaves
-from jaxrt._src.geometry import TriangleGeometry
+from jaxrt._src.geometry import BoundingBoxGeometry, TriangleGeometry
+from jaxrt._src.primitive_data import gather_leaf_data, primitive_data_layout
 from jaxrt._src.primitives import triangle
 
 __all__ = ["PrimitiveAccelerationStructure", "build_primitive_structure", "refit", "capacity_bucket"]
@@ -75,6 +83,8 @@ class PrimitiveAccelerationStructure:
     geometry_info: tuple[GeometryInfo, ...] = dataclasses.field(metadata=dict(static=True))
     leaf_curve: jax.Array | None = None
     leaf_curve_flags: jax.Array | None = None
+    leaf_box: jax.Array | None = None
+    leaf_primitive_data: Any = None
 
     @property
     def capacity(self) -> int:
@@ -106,12 +116,15 @@ def capacity_bucket(count: int, capacity: int | None = None) -> int:
     return max(2, 1 << (max(count, 1) - 1).bit_length())
 
 
-def _geometry_info(g: TriangleGeometry | CurveGeometry) -> GeometryInfo:
+_GEOMETRY_CLASSES = (TriangleGeometry, CurveGeometry, BoundingBoxGeometry)
+
+
+def _geometry_info(g: TriangleGeometry | CurveGeometry | BoundingBoxGeometry) -> GeometryInfo:
     return GeometryInfo(g.kind, g.primitive_count, g.opaque, g.info if isinstance(g, CurveGeometry) else None)
 
 
 def _as_geometry_tuple(geometries: Any) -> tuple[TriangleGeometry, ...]:
-    if isinstance(geometries, TriangleGeometry | CurveGeometry):
+    if isinstance(geometries, _GEOMETRY_CLASSES):
         geometries = (geometries,)
     if not isinstance(geometries, Sequence) or isinstance(geometries, str):
         raise TypeError(
@@ -121,19 +134,25 @@ def _as_geometry_tuple(geometries: Any) -> tuple[TriangleGeometry, ...]:
     if not geometries:
         raise ValueError("build_primitive_structure: geometries is empty; a structure needs at least one geometry")
     for index, geometry in enumerate(geometries):
-        if not isinstance(geometry, TriangleGeometry | CurveGeometry):
+        if not isinstance(geometry, _GEOMETRY_CLASSES):
             raise TypeError(
                 f"build_primitive_structure: geometries[{index}] is a {type(geometry).__name__}; "
-                "supported geometry types: TriangleGeometry, CurveGeometry"
+                "supported geometry types: TriangleGeometry, CurveGeometry, BoundingBoxGeometry"
             )
+    primitive_data_layout(geometries)  # one layout for all primitive data (a named error otherwise)
     return geometries
 
 
 def _leaf_primitives(geometries: tuple[TriangleGeometry, ...], capacity: int):
     """Concatenated triangles, ids and boxes of all geometries, padded to ``capacity`` (unsorted)."""
     curves = curve_leaves(geometries, capacity)  # None without curve geometries
+    dtype = _float_dtype(geometries)
     triangles = jnp.concatenate(
-        [g.triangle_vertices() if g.kind == "triangle" else curves.no_triangles(g) for g in geometries], axis=0
+        [
+            g.triangle_vertices() if g.kind == "triangle" else jnp.zeros((g.primitive_count, 3, 3), dtype)
+            for g in geometries
+        ],
+        axis=0,
     )
     count = triangles.shape[0]
     geometry_id = jnp.concatenate([jnp.full((g.primitive_count,), i, jnp.int32) for i, g in enumerate(geometries)])
@@ -151,7 +170,32 @@ def _leaf_primitives(geometries: tuple[TriangleGeometry, ...], capacity: int):
     if curves is not None:  # curve segments: their Bezier hull grown by the radius
         lower = jnp.where(curves.is_curve[:, None], curves.lower, lower)
         upper = jnp.where(curves.is_curve[:, None], curves.upper, upper)
-    return triangles, geometry_id, primitive_id, lower, upper, valid, curves
+    boxes = _leaf_boxes(geometries, capacity, dtype)
+    if boxes is not None:  # box primitives: their own box
+        is_box = boxes[:, 0, 0] <= boxes[:, 1, 0]
+        lower = jnp.where(is_box[:, None], boxes[:, 0], lower)
+        upper = jnp.where(is_box[:, None], boxes[:, 1], upper)
+    return triangles, geometry_id, primitive_id, lower, upper, valid, curves, boxes
+
+
+def _float_dtype(geometries) -> jnp.dtype:
+    first = geometries[0]
+    return {"triangle": lambda: first.vertices, "curve": lambda: first.control_points}.get(
+        first.kind, lambda: first.lower
+    )().dtype
+
+
+def _leaf_boxes(geometries, capacity: int, dtype) -> jax.Array | None:
+    """``(C, 2, 3)`` corners of the box primitives in unsorted slot order (empty for other rows), or ``None``."""
+    if not any(g.kind == "bounding_box" for g in geometries):
+        return None
+    empty = lambda n: jnp.stack([jnp.full((n, 3), jnp.inf, dtype), jnp.full((n, 3), -jnp.inf, dtype)], 1)  # noqa: E731
+    rows = [
+        jnp.stack([g.lower, g.upper], axis=1).astype(dtype) if g.kind == "bounding_box" else empty(g.primitive_count)
+        for g in geometries
+    ]
+    count = sum(g.primitive_count for g in geometries)
+    return jnp.concatenate([*rows, empty(capacity - count)], axis=0)
 
 
 def _node_boxes(children, node_range, leaf_lower, leaf_upper):
@@ -162,13 +206,17 @@ def _node_boxes(children, node_range, leaf_lower, leaf_upper):
 def _build(
     geometries: tuple[TriangleGeometry, ...], capacity: int, quality: str = "fast"
 ) -> PrimitiveAccelerationStructure:
-    triangles, geometry_id, primitive_id, lower, upper, valid, curves = _leaf_primitives(geometries, capacity)
+    triangles, geometry_id, primitive_id, lower, upper, valid, curves, boxes = _leaf_primitives(geometries, capacity)
     # Codes from the triangles' own boxes: a zero-area triangle's empty box has no centroid.
     bounds = lax.stop_gradient(triangles)
     code_lower, code_upper = jnp.min(bounds, axis=1), jnp.max(bounds, axis=1)
     if curves is not None:  # curve segments: the centroids of their boxes
         code_lower = jnp.where(curves.is_curve[:, None], lax.stop_gradient(curves.lower), code_lower)
         code_upper = jnp.where(curves.is_curve[:, None], lax.stop_gradient(curves.upper), code_upper)
+    if boxes is not None:  # box primitives: the centroids of the boxes
+        is_box = boxes[:, 0, 0] <= boxes[:, 1, 0]
+        code_lower = jnp.where(is_box[:, None], lax.stop_gradient(boxes[:, 0]), code_lower)
+        code_upper = jnp.where(is_box[:, None], lax.stop_gradient(boxes[:, 1]), code_upper)
     codes = morton_codes(code_lower, code_upper, valid)
     order = jnp.arange(capacity, dtype=jnp.int32)
     codes, order = lax.sort((codes, order), num_keys=1, is_stable=True)
@@ -193,6 +241,8 @@ def _build(
         geometry_info=info,
         leaf_curve=None if curves is None else curves.segments[order],
         leaf_curve_flags=None if curves is None else curves.flags[order],
+        leaf_box=None if boxes is None else lax.stop_gradient(boxes[order]),
+        leaf_primitive_data=gather_leaf_data(geometries, capacity, order),
     )
 
 
@@ -244,7 +294,7 @@ def build_primitive_structure(
 
 
 def _refit(structure: PrimitiveAccelerationStructure, geometries: tuple[TriangleGeometry, ...]):
-    triangles, _, _, lower, upper, _, curves = _leaf_primitives(geometries, structure.capacity)
+    triangles, _, _, lower, upper, _, curves, boxes = _leaf_primitives(geometries, structure.capacity)
     # Leaf k holds unsorted slot order[k]; recover it from the stored ids (slot = offset + primitive).
     offsets = jnp.cumsum(jnp.array([0] + [g.primitive_count for g in geometries[:-1]], jnp.int32))
     padding = structure.leaf_geometry < 0
@@ -259,6 +309,10 @@ def _refit(structure: PrimitiveAccelerationStructure, geometries: tuple[Triangle
         leaf_triangle=jnp.where(padding[:, None, None], 0.0, triangles[slot]),
         leaf_curve=None if curves is None else jnp.where(padding[:, None, None], 0.0, curves.segments[slot]),
         leaf_curve_flags=None if curves is None else jnp.where(padding, 0, curves.flags[slot]),
+        leaf_box=None
+        if boxes is None
+        else lax.stop_gradient(jnp.where(padding[:, None, None], boxes[-1], boxes[slot])),
+        leaf_primitive_data=gather_leaf_data(geometries, structure.capacity, jnp.where(padding, -1, slot)),
     )
 
 

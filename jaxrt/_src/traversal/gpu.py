@@ -37,7 +37,7 @@ from jaxrt._src.traversal.stack import TraversalResult, traverse
 __all__ = ["KernelOptions", "unavailable_reason", "trace", "COVERED_TAGS", "MAX_PROGRAMS"]
 
 #: Intersector tags whose fields the GPU path can produce (the intersector re-computes them from the leaf).
-COVERED_TAGS = frozenset({"triangle_data", "stats"})
+COVERED_TAGS = frozenset({"triangle_data", "stats", "primitive_data"})
 #: Most programs per launch; larger batches are walked with a stride, which bounds the stack scratch buffer
 #: to ``MAX_PROGRAMS * rays_per_program * stack depth`` int32 (about 230 MB for a 2**24-leaf structure).
 MAX_PROGRAMS = 1 << 15

@@ -50,6 +50,35 @@ class TraversalResult(NamedTuple):
     nodes_visited: jax.Array
     primitives_tested: jax.Array
     stack_overflow: jax.Array
+    hits: Any = None  # with ``max_hits``: a :class:`HitList`
+
+
+class HitList(NamedTuple):
+    """The ``K`` nearest accepted hits of a ray, sorted by distance, and how many were accepted in all.
+
+    While no more than ``K`` hits are known the traversal culls only by the ray's ``max_distance``, so that
+    ``total`` counts every hit up to ``K + 1``; after that it culls by the ``K``-th distance (``total > K``
+    then only says that more than ``K`` hits exist). In counting mode (``count_all``) it never culls, and
+    ``total`` is the number of hits.
+    """
+
+    distance: jax.Array  # (K,) inf past the last hit
+    leaf: jax.Array  # (K,) -1 past the last hit
+    total: jax.Array  # int32
+
+
+def _insert(hits: HitList, ok: jax.Array, t: jax.Array, leaf: jax.Array) -> HitList:
+    """Insert one candidate hit into the sorted list (after hits at the same distance)."""
+    k = hits.distance.shape[0]
+    position = jnp.sum(hits.distance <= t).astype(jnp.int32)
+    index = jnp.arange(k)
+    previous = jnp.maximum(index - 1, 0)
+    shift = lambda old, new: jnp.where(index < position, old, jnp.where(index == position, new, old[previous]))  # noqa: E731
+    return HitList(
+        distance=jnp.where(ok, shift(hits.distance, t), hits.distance),
+        leaf=jnp.where(ok, shift(hits.leaf, leaf), hits.leaf),
+        total=hits.total + ok.astype(jnp.int32),
+    )
 
 
 class _State(NamedTuple):
@@ -62,6 +91,7 @@ class _State(NamedTuple):
     visited: jax.Array
     tested: jax.Array
     overflow: jax.Array
+    hits: HitList | None = None
 
 
 class _RayConstants(NamedTuple):
@@ -71,7 +101,7 @@ class _RayConstants(NamedTuple):
     t_min: jax.Array
 
 
-def _start(leaf_tester, origin, direction, t_min, t_max, enabled, stack_size):
+def _start(leaf_tester, origin, direction, t_min, t_max, enabled, stack_size, max_hits=None):
     """Per-ray constants and the initial state (a disabled ray starts done)."""
     int_zero = jnp.zeros((), jnp.int32)
     constants = _RayConstants(origin, safe_reciprocal(direction), leaf_tester.prepare(origin, direction), t_min)
@@ -85,12 +115,23 @@ def _start(leaf_tester, origin, direction, t_min, t_max, enabled, stack_size):
         visited=int_zero,
         tested=int_zero,
         overflow=jnp.zeros((), bool),
+        hits=None
+        if max_hits is None
+        else HitList(
+            jnp.full((max_hits,), jnp.inf, origin.dtype), jnp.full((max_hits,), -1, jnp.int32), jnp.zeros((), jnp.int32)
+        ),
     )
     return constants, state
 
 
-def _step(nodes, leaf_tester, ray: _RayConstants, s: _State, any_hit: bool, stack_size: int) -> _State:
-    """Visit one internal node; a no-op for a ray that is done."""
+def _step(
+    nodes, leaf_tester, ray: _RayConstants, s: _State, any_hit: bool, stack_size: int, count_all: bool = False
+) -> _State:
+    """Visit one internal node; a no-op for a ray that is done.
+
+    With a hit list (``max_hits``) both leaves' hits are inserted into it, and ``distance`` is the culling
+    distance (see :class:`HitList`); ``count_all`` never culls.
+    """
     node_lower, node_upper, node_children = nodes
     active = ~s.done
     children = node_children[s.node]
@@ -109,6 +150,14 @@ def _step(nodes, leaf_tester, ray: _RayConstants, s: _State, any_hit: bool, stac
     found = (leaf_hit[0] | leaf_hit[1]) & ((best_t < s.distance) | ((s.leaf < 0) & (best_t <= s.distance)))
     distance = jnp.where(found, best_t, s.distance)
     leaf = jnp.where(found, best_leaf, s.leaf)
+    hits = s.hits
+    if hits is not None:
+        for i in range(2):
+            hits = _insert(hits, leaf_hit[i], leaf_t[i], -1 - children[i])
+        k = hits.distance.shape[0]
+        full = hits.total > k
+        distance = s.distance if count_all or k == 0 else jnp.where(full, hits.distance[k - 1], s.distance)
+        leaf = hits.leaf[0] if k else s.leaf
 
     inner = box_hit & ~is_leaf
     near_first = t_near[0] <= t_near[1]
@@ -138,11 +187,12 @@ def _step(nodes, leaf_tester, ray: _RayConstants, s: _State, any_hit: bool, stac
         visited=s.visited + active.astype(jnp.int32),
         tested=s.tested + jnp.sum(box_hit & is_leaf).astype(jnp.int32),
         overflow=overflow,
+        hits=hits,
     )
 
 
 def _result(state: _State) -> TraversalResult:
-    return TraversalResult(state.distance, state.leaf, state.visited, state.tested, state.overflow)
+    return TraversalResult(state.distance, state.leaf, state.visited, state.tested, state.overflow, state.hits)
 
 
 def traverse(
@@ -158,6 +208,8 @@ def traverse(
     *,
     any_hit: bool,
     stack_size: int,
+    max_hits: int | None = None,
+    count_all: bool = False,
 ) -> TraversalResult:
     """Trace one ray through a binary BVH (layout in :mod:`jaxrt._src.structures`); batch it with ``vmap``.
 
@@ -169,10 +221,14 @@ def traverse(
       enabled: scalar bool; a disabled ray takes no step.
       any_hit: static; stop at the first accepted hit.
       stack_size: static stack depth.
+      max_hits: static; keep the ``max_hits`` nearest hits in a :class:`HitList` (``0`` with ``count_all``:
+        only count them).
+      count_all: static; with ``max_hits``, never cull (count every hit).
     """
     nodes = (node_lower, node_upper, node_children)
-    ray, state = _start(leaf_tester, origin, direction, t_min, t_max, enabled, stack_size)
-    final = lax.while_loop(lambda s: ~s.done, lambda s: _step(nodes, leaf_tester, ray, s, any_hit, stack_size), state)
+    ray, state = _start(leaf_tester, origin, direction, t_min, t_max, enabled, stack_size, max_hits)
+    body = lambda s: _step(nodes, leaf_tester, ray, s, any_hit, stack_size, count_all)  # noqa: E731
+    final = lax.while_loop(lambda s: ~s.done, body, state)
     return _result(final)
 
 
@@ -191,6 +247,8 @@ def traverse_refill(
     stack_size: int,
     lanes: int = 2048,
     steps_per_refill: int = 2,
+    max_hits: int | None = None,
+    count_all: bool = False,
 ) -> TraversalResult:
     """Trace a batch of rays ``(N, ...)`` in a fixed window of lanes that are refilled as rays end.
 
@@ -202,25 +260,16 @@ def traverse_refill(
     nodes = (node_lower, node_upper, node_children)
     n = origin.shape[0]
     width = min(lanes, n)
-    rays, initial = jax.vmap(lambda *a: _start(leaf_tester, *a, 1))(origin, direction, t_min, t_max, enabled)
-    step = jax.vmap(lambda r, s: _step(nodes, leaf_tester, r, s, any_hit, stack_size))
+    start = lambda *a: _start(leaf_tester, *a, 1, max_hits)  # noqa: E731
+    rays, initial = jax.vmap(start)(origin, direction, t_min, t_max, enabled)
+    step = jax.vmap(lambda r, s: _step(nodes, leaf_tester, r, s, any_hit, stack_size, count_all))
     take = lambda tree, index: jax.tree_util.tree_map(lambda a: a[index], tree)  # noqa: E731
 
     def load(state: _State, ray_index: jax.Array, fresh: jax.Array) -> _State:
         """Reset the lanes where ``fresh`` to the initial state of ray ``ray_index`` (the stack is reused)."""
-        start = take(initial, ray_index)
+        start = take(initial, ray_index)._replace(stack=state.stack)
         pick = lambda new, old: jnp.where(fresh.reshape(-1, *([1] * (old.ndim - 1))), new, old)  # noqa: E731
-        return _State(
-            node=pick(start.node, state.node),
-            stack=state.stack,
-            depth=pick(start.depth, state.depth),
-            distance=pick(start.distance, state.distance),
-            leaf=pick(start.leaf, state.leaf),
-            done=pick(start.done, state.done),
-            visited=pick(start.visited, state.visited),
-            tested=pick(start.tested, state.tested),
-            overflow=pick(start.overflow, state.overflow),
-        )
+        return jax.tree_util.tree_map(pick, start, state)
 
     lane_ray = jnp.arange(width, dtype=jnp.int32)
     state = take(initial, lane_ray)._replace(stack=jnp.zeros((width, stack_size), jnp.int32))

@@ -1,0 +1,312 @@
+"""Intersection queries: the traversal as a state the user steps, deciding candidates in their own loop
+(Metal's ``intersection_query``).
+
+A query walks the structure with the portable stack traversal. Opaque triangles and curves are committed as
+they are found; each non-opaque triangle the ray hits and each box primitive it enters becomes a *candidate*
+that :meth:`IntersectionQuery.next` stops at, nearest first within a node, and only while it is nearer than
+the committed hit. The user reads the candidate and commits it or not; the next call to ``next`` continues
+the traversal, culling by the committed distance. After the loop the ``committed_*`` accessors describe the
+nearest committed hit. A query is a pytree of one ray's state: build it inside ``jax.vmap`` over rays and
+step it with ``lax.while_loop``::
+
+    def trace(ray):
+        def body(q):
+            alpha = texture_alpha(q.candidate_primitive_id, q.candidate_triangle_barycentric_coord)
+            return q.commit_triangle_intersection(alpha >= 0.5).next()
+
+        q = rt.intersection_query(ray, structure, rt.Intersector(rt.tags.triangle_data))
+        q = lax.while_loop(lambda q: q.has_candidate, body, q.next())
+        return q.committed_distance
+
+The intersector's ``filter`` and ``intersection_functions`` are not used: the loop decides. Results of a
+query are not differentiable (trace again with ``Intersector.intersect`` for gradients).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+from jaxrt._src import custom_leaves as custom
+from jaxrt._src.primitive_data import data_at
+from jaxrt._src.primitives import triangle
+from jaxrt._src.primitives.box import ray_box
+from jaxrt._src.ray import Ray
+from jaxrt._src.result import IntersectionType
+from jaxrt._src.structures import PrimitiveAccelerationStructure
+from jaxrt._src.traversal.stack import _RayConstants, _start, _State, _step
+
+__all__ = ["IntersectionQuery", "intersection_query"]
+
+_NONE, _TRIANGLE, _BOX = int(IntersectionType.NONE), int(IntersectionType.TRIANGLE), int(IntersectionType.BOUNDING_BOX)
+
+
+class _OpaqueLeaves:
+    """The intersector's opaque tests (triangles, curves) with candidate leaves masked out (a ``LeafTester``)."""
+
+    def __init__(self, inner: Any, is_candidate_geometry: jax.Array, leaf_geometry: jax.Array):
+        self.inner = inner
+        self.table = is_candidate_geometry
+        self.leaf_geometry = leaf_geometry
+
+    def prepare(self, origin, direction):
+        return self.inner.prepare(origin, direction)
+
+    def __call__(self, context, leaves, t_min, t_max):
+        hit, t = self.inner(context, leaves, t_min, t_max)
+        geometry = self.leaf_geometry[jnp.maximum(leaves, 0)]
+        candidate = self.table[jnp.where(geometry < 0, self.table.shape[0] - 1, geometry)]
+        return hit & ~candidate, jnp.where(candidate, jnp.inf, t)
+
+
+def _candidate_table(structure: PrimitiveAccelerationStructure) -> jax.Array:
+    """Geometries whose primitives are candidates: non-opaque triangles and boxes (padding row last)."""
+    flags = [(g.kind == "triangle" and not g.opaque) or g.kind == "bounding_box" for g in structure.geometry_info]
+    return jnp.asarray(flags + [False])
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class IntersectionQuery:
+    """One ray's intersection query (Metal's ``intersection_query``): an immutable pytree; every method
+    returns a new query. Build it with :func:`intersection_query`."""
+
+    structure: PrimitiveAccelerationStructure
+    ray: _RayConstants
+    direction: jax.Array
+    sheared: Any
+    state: _State
+    pending_leaf: jax.Array  # (2,) candidate leaves found at the last node, nearest first; -1: none
+    pending_distance: jax.Array  # (2,) their triangle distance or box entry distance
+    candidate: jax.Array  # the current candidate leaf; -1: none
+    candidate_distance: jax.Array  # its distance (triangles) or box entry distance (boxes)
+    intersector: Any = dataclasses.field(metadata=dict(static=True))
+
+    # --- stepping -----------------------------------------------------------------------------------------
+
+    @property
+    def has_candidate(self) -> jax.Array:
+        """Whether :meth:`next` stopped at a candidate (Metal's ``next()`` return value)."""
+        return self.candidate >= 0
+
+    def next(self) -> IntersectionQuery:
+        """Advance to the next candidate (committing opaque hits on the way); ``has_candidate`` is False
+        when the traversal has ended."""
+        q = dataclasses.replace(self, candidate=jnp.int32(-1))
+
+        def searching(q):
+            return ~q.has_candidate & ((q.pending_leaf[0] >= 0) | ~q.state.done)
+
+        return lax.while_loop(searching, lambda q: lax.cond(q.pending_leaf[0] >= 0, _pop, _advance, q), q)
+
+    def commit_triangle_intersection(self, accept: Any = True) -> IntersectionQuery:
+        """Commit the current triangle candidate (where ``accept``)."""
+        ok = jnp.asarray(accept, bool) & (self.candidate_type == _TRIANGLE)
+        return self._commit(ok, self.candidate_distance)
+
+    def commit_bounding_box_intersection(self, distance: Any, accept: Any = True) -> IntersectionQuery:
+        """Commit the current box candidate at ``distance`` (where ``accept`` and the distance lies between the
+        ray's ``min_distance`` and the committed distance; otherwise nothing changes)."""
+        distance = jnp.asarray(distance, self.ray.origin.dtype)
+        ok = jnp.asarray(accept, bool) & (self.candidate_type == _BOX)
+        ok &= (distance >= self.ray.t_min) & (distance <= self.state.distance)
+        return self._commit(ok, distance)
+
+    def _commit(self, ok: jax.Array, distance: jax.Array) -> IntersectionQuery:
+        stop = ok & self.intersector.accept_any_intersection
+        state = self.state._replace(
+            distance=jnp.where(ok, distance, self.state.distance),
+            leaf=jnp.where(ok, self.candidate, self.state.leaf),
+            done=self.state.done | stop,
+        )
+        pending = jnp.where(stop, -1, self.pending_leaf)
+        return dataclasses.replace(self, state=state, pending_leaf=pending)
+
+    # --- the candidate -------------------------------------------------------------------------------------
+
+    def _kind(self, leaf: jax.Array) -> jax.Array:
+        kinds = [
+            _BOX if g.kind == "bounding_box" else _TRIANGLE if g.kind == "triangle" else int(IntersectionType.CURVE)
+            for g in self.structure.geometry_info
+        ]
+        geometry = self.structure.leaf_geometry[jnp.maximum(leaf, 0)]
+        return jnp.where(leaf >= 0, jnp.asarray(kinds, jnp.int32)[jnp.maximum(geometry, 0)], _NONE)
+
+    @property
+    def candidate_type(self) -> jax.Array:
+        """``rt.IntersectionType`` of the candidate (``NONE`` without one)."""
+        return self._kind(self.candidate)
+
+    @property
+    def candidate_primitive_id(self) -> jax.Array:
+        return jnp.where(self.has_candidate, self.structure.leaf_primitive[jnp.maximum(self.candidate, 0)], -1)
+
+    @property
+    def candidate_geometry_id(self) -> jax.Array:
+        return jnp.where(self.has_candidate, self.structure.leaf_geometry[jnp.maximum(self.candidate, 0)], -1)
+
+    @property
+    def candidate_triangle_distance(self) -> jax.Array:
+        """The candidate triangle's hit distance (Metal's ``get_candidate_triangle_distance``)."""
+        return jnp.where(self.candidate_type == _TRIANGLE, self.candidate_distance, jnp.inf)
+
+    @property
+    def candidate_triangle_barycentric_coord(self) -> jax.Array:
+        return self._barycentrics(self.candidate, self.candidate_type == _TRIANGLE)[0]
+
+    @property
+    def candidate_triangle_front_facing(self) -> jax.Array:
+        return self._barycentrics(self.candidate, self.candidate_type == _TRIANGLE)[1]
+
+    @property
+    def candidate_bounding_box(self) -> tuple[jax.Array, jax.Array]:
+        """``(lower, upper)`` of the candidate box."""
+        box = self.structure.leaf_box[jnp.maximum(self.candidate, 0)]
+        return box[0], box[1]
+
+    @property
+    def candidate_primitive_data(self) -> Any:
+        """The candidate primitive's data pytree (``None`` for a structure without primitive data)."""
+        return data_at(self.structure.leaf_primitive_data, self.candidate, self.has_candidate)
+
+    @property
+    def candidate_ray(self) -> Ray:
+        """The ray in the candidate's space, with ``max_distance`` the committed distance (for box tests)."""
+        return custom.function_ray(self.ray.origin, self.direction, self.ray.t_min, self.state.distance)
+
+    # --- the committed hit ---------------------------------------------------------------------------------
+
+    @property
+    def committed_type(self) -> jax.Array:
+        return self._kind(self.state.leaf)
+
+    @property
+    def committed_distance(self) -> jax.Array:
+        return jnp.where(self.state.leaf >= 0, self.state.distance, jnp.inf)
+
+    @property
+    def committed_primitive_id(self) -> jax.Array:
+        return jnp.where(self.state.leaf >= 0, self.structure.leaf_primitive[jnp.maximum(self.state.leaf, 0)], -1)
+
+    @property
+    def committed_geometry_id(self) -> jax.Array:
+        return jnp.where(self.state.leaf >= 0, self.structure.leaf_geometry[jnp.maximum(self.state.leaf, 0)], -1)
+
+    @property
+    def committed_triangle_barycentric_coord(self) -> jax.Array:
+        return self._barycentrics(self.state.leaf, self.committed_type == _TRIANGLE)[0]
+
+    @property
+    def committed_triangle_front_facing(self) -> jax.Array:
+        return self._barycentrics(self.state.leaf, self.committed_type == _TRIANGLE)[1]
+
+    @property
+    def committed_primitive_data(self) -> Any:
+        return data_at(self.structure.leaf_primitive_data, self.state.leaf, self.state.leaf >= 0)
+
+    def _barycentrics(self, leaf: jax.Array, valid: jax.Array) -> tuple[jax.Array, jax.Array]:
+        vertices = self.structure.leaf_triangle[jnp.maximum(leaf, 0)]
+        u, v, clockwise = triangle.barycentrics(self.sheared, vertices)
+        front = clockwise if self.intersector.front_facing_winding == "clockwise" else ~clockwise
+        return jnp.where(valid, jnp.stack([u, v]), 0.0), valid & front
+
+
+def _tester(intersector: Any, structure: PrimitiveAccelerationStructure) -> _OpaqueLeaves:
+    from jaxrt._src.intersector import _leaf_tester
+
+    inner = _leaf_tester(intersector, structure, user_code=False)
+    return _OpaqueLeaves(inner, _candidate_table(structure), structure.leaf_geometry)
+
+
+def _pop(q: IntersectionQuery) -> IntersectionQuery:
+    """Take the nearest pending candidate if it is still nearer than the committed hit."""
+    leaf, t = q.pending_leaf[0], q.pending_distance[0]
+    valid = t <= q.state.distance
+    return dataclasses.replace(
+        q,
+        pending_leaf=jnp.stack([q.pending_leaf[1], jnp.int32(-1)]),
+        pending_distance=jnp.stack([q.pending_distance[1], jnp.inf]).astype(t.dtype),
+        candidate=jnp.where(valid, leaf, -1),
+        candidate_distance=jnp.where(valid, t, jnp.inf),
+    )
+
+
+def _advance(q: IntersectionQuery) -> IntersectionQuery:
+    """One traversal step: opaque hits are committed, candidate leaves of the node become pending."""
+    s, ray, structure = q.state, q.ray, q.structure
+    nodes = (structure.node_lower, structure.node_upper, structure.node_children)
+    children = structure.node_children[s.node]
+    box_hit, t_near = ray_box(
+        ray.origin, ray.inv_direction, ray.t_min, s.distance, structure.node_lower[s.node], structure.node_upper[s.node]
+    )
+    leaves = jnp.where((children < 0) & box_hit & ~s.done, -1 - children, -1)
+    geometry = structure.leaf_geometry[jnp.maximum(leaves, 0)]
+    table = _candidate_table(structure)
+    is_candidate = (leaves >= 0) & table[jnp.where(geometry < 0, table.shape[0] - 1, geometry)]
+    kinds = q._kind(leaves)
+    hits = triangle.watertight(
+        q.sheared, ray.t_min, s.distance, structure.leaf_triangle[jnp.maximum(leaves, 0)], q.intersector._cull
+    )
+    is_candidate &= (kinds == _BOX) | hits.hit
+    distance = jnp.where(kinds == _BOX, jnp.maximum(t_near, ray.t_min), hits.distance)
+    state = _step(
+        nodes, _tester(q.intersector, structure), ray, s, q.intersector.accept_any_intersection, structure.max_depth
+    )
+    keep = is_candidate & (distance <= state.distance) & ~(q.intersector.accept_any_intersection & (state.leaf >= 0))
+    distance = jnp.where(keep, distance, jnp.inf)
+    order = jnp.argsort(distance)
+    return dataclasses.replace(
+        q,
+        state=state,
+        pending_leaf=jnp.where(keep, leaves, -1)[order],
+        pending_distance=distance[order],
+    )
+
+
+def intersection_query(rays: Ray, structure: PrimitiveAccelerationStructure, intersector: Any) -> IntersectionQuery:
+    """Start an intersection query of one ray (batch with ``jax.vmap``); call ``next()`` to reach the first
+    candidate. The intersector supplies cull mode, winding and ``accept_any_intersection``.
+
+    Raises:
+      ValueError: ``rays`` is not a single ray. NotImplementedError: an instance structure.
+    """
+    from jaxrt._src.instances import InstanceAccelerationStructure
+    from jaxrt._src.intersector import Intersector, _enabled
+
+    if not isinstance(rays, Ray):
+        raise TypeError(f"intersection_query: rays must be an rt.Ray, got {type(rays).__name__}")
+    if rays.shape != ():
+        raise ValueError(
+            f"intersection_query: a query traces one ray (shape ()), got a batch of shape {rays.shape}; "
+            "build the query inside jax.vmap over the rays"
+        )
+    if not isinstance(intersector, Intersector):
+        raise TypeError(f"intersection_query: intersector must be an rt.Intersector, got {type(intersector).__name__}")
+    if isinstance(structure, InstanceAccelerationStructure):
+        raise NotImplementedError("intersection_query: instance structures are not supported yet")
+    if not isinstance(structure, PrimitiveAccelerationStructure):
+        raise TypeError(f"intersection_query: structure must be a primitive structure, got {type(structure).__name__}")
+    enabled = _enabled(rays)
+    origin = jnp.where(enabled, rays.origin, 0.0)
+    direction = jnp.where(enabled, rays.direction, jnp.array([0.0, 0.0, 1.0], rays.direction.dtype))
+    t_min = jnp.where(enabled, rays.min_distance, 0.0)
+    t_max = jnp.where(enabled, rays.max_distance, 0.0)
+    constants, state = _start(
+        _tester(intersector, structure), origin, direction, t_min, t_max, enabled, structure.max_depth
+    )
+    return IntersectionQuery(
+        structure=structure,
+        ray=constants,
+        direction=direction,
+        sheared=triangle.shear_ray(origin, direction),
+        state=state,
+        pending_leaf=jnp.full((2,), -1, jnp.int32),
+        pending_distance=jnp.full((2,), jnp.inf, origin.dtype),
+        candidate=jnp.int32(-1),
+        candidate_distance=jnp.asarray(jnp.inf, origin.dtype),
+        intersector=intersector,
+    )
