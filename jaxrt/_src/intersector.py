@@ -518,7 +518,7 @@ def _hit_fields(intersector, structure, origin, direction, t_min, t_max, leaf, d
     if structure.leaf_box is not None:
         is_box_table = jnp.asarray([g.kind == "bounding_box" for g in infos] + [False])
         is_box = found & is_box_table[structure.leaf_geometry[leaf]]
-        box_t = _box_distance(intersector, structure, leaf, is_box, origin, direction, t_min, distance)
+        box_t = _box_distance(intersector, structure, leaf, is_box, origin, direction, t_min, t_max, distance)
         hit = hit & ~is_box
     kind = jnp.where(hit, int(IntersectionType.TRIANGLE), int(IntersectionType.NONE))
     fields: dict[str, Any] = {
@@ -564,14 +564,19 @@ def _hit_fields(intersector, structure, origin, direction, t_min, t_max, leaf, d
     return fields
 
 
-def _box_distance(intersector, structure, leaf, is_box, origin, direction, t_min, distance):
-    """Box hit distances: the traversal's value, with the gradient of the function called again on the box."""
+def _box_distance(intersector, structure, leaf, is_box, origin, direction, t_min, t_max, distance):
+    """Box hit distances: the traversal's value, with the gradient of the function called again on the box.
+
+    The call again sees the ray's own interval (the nearest accepted root of this box is the one found): with
+    the found distance as ``max_distance``, a recomputation an ulp larger (other FMA contractions in another
+    program) would be rejected and lose the gradient.
+    """
     detached = lax.stop_gradient
     arrays = (structure.leaf_box, structure.leaf_geometry, structure.leaf_primitive, structure.leaf_primitive_data)
     # Lanes without a box hit call the function with a harmless ray (no NaN in their zero gradients).
     ray_origin = jnp.where(is_box[:, None], origin, 0.0)
     ray_direction = jnp.where(is_box[:, None], direction, jnp.array([0.0, 0.0, 1.0], direction.dtype))
-    t_max = jnp.where(is_box, detached(distance), 1.0)
+    t_max = jnp.where(is_box, detached(t_max), 1.0)
 
     def one(o, d, lo, hi, k):
         ray = custom.function_ray(o, d, lo, hi)
