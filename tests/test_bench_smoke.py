@@ -91,3 +91,23 @@ def test_load_mesh_errors(tmp_path):
     huge.write_text("v 0 0 0\nv 1e39 0 0\nv 0 1 0\nf 1 2 3\n")
     with pytest.raises(ValueError, match="not finite in float32"):
         load_mesh(huge)
+
+
+def test_custom_geometry_bench_reports_analytic_spheres_exactly(tmp_path):
+    from jaxrt.bench import custom
+
+    path = tmp_path / "custom.json"
+    results = custom.main(["--spheres", "20", "--triangles", "500", "--rays", "256", "--repeats", "0",
+                           "--json", str(path)])  # fmt: skip
+    assert json.loads(path.read_text())["config"]["spheres"] == 20
+    boxes, *tessellated = results["spheres"]
+    assert boxes["hits"] > 0 and boxes["hit_mismatches"] == 0
+    assert boxes["max_rel_error"] < 1e-5  # float32 analytic roots against float64 ones
+    assert len(tessellated) == 3 and all(row["trace"]["mrays_s"] > 0 for row in tessellated)
+    # The finest tessellation is closer to the sphere than the coarsest.
+    assert tessellated[-1]["median_rel_error"] < tessellated[0]["median_rel_error"]
+    hits = {row["case"]: row["hits"] for row in results["filters"]}
+    assert (
+        hits["opaque, no filter"] == hits["opaque, filter (never called)"] == hits["non-opaque, filter accepting all"]
+    )
+    assert 0 < hits["non-opaque, alpha filter (~50% rejected)"] <= hits["opaque, no filter"]

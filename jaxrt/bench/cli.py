@@ -58,6 +58,11 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--quick", action="store_true", help="tiny sizes and one repeat: a smoke test")
     parser.add_argument("--json", metavar="PATH", help="also write every number and the machine info to PATH")
     parser.add_argument("--quiet", action="store_true", help="print only the table")
+    parser.add_argument(
+        "--custom",
+        action="store_true",
+        help="also run the custom-geometry tables: boxes with functions, filters, multi-hit (jaxrt.bench.custom)",
+    )
     return parser
 
 
@@ -137,6 +142,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.json:
         write_json(results, args.json)
         print(f"wrote {args.json}")
+    if args.custom:
+        from jaxrt.bench import custom
+
+        print()
+        custom.main(["--quick"] if args.quick else [])
     return 0
 
 
