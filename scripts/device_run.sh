@@ -4,6 +4,7 @@
 # meshes copied to .data/ in the shared data layout. Logs and JSON go to $OUT (or /tmp/out).
 #   bash scripts/device_run.sh core     core bench, gradient bench, GPU + gradient tests
 #   bash scripts/device_run.sh more     instancing and curve benches
+#   bash scripts/device_run.sh custom   custom-geometry bench and tests, curve bench, sharded bench (all GPUs)
 set -uo pipefail
 part=${1:-core}
 out=${OUT:-/tmp/out}
@@ -25,6 +26,13 @@ case $part in
   more)
     step instancing 200 python3 -m jaxrt.bench.instancing --json "$out/instancing.json"
     step curves 200 python3 -m jaxrt.bench.curves --json "$out/curves.json"
+    ;;
+  custom)
+    step sharded 120 python3 -m jaxrt.bench.sharded --json "$out/sharded.json"
+    step custom 150 python3 -m jaxrt.bench.custom --json "$out/custom.json"
+    step custom_tests 120 python3 -m pytest tests/test_gradients_custom.py tests/test_query.py tests/test_gpu.py \
+      -q -p no:cacheprovider -rs -k "not interpreter" -x
+    step curves 180 python3 -m jaxrt.bench.curves --json "$out/curves.json"
     ;;
 esac
 for f in "$out"/*.log; do echo "##### $f"; tail -n 40 "$f"; done

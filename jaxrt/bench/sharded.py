@@ -1,0 +1,86 @@
+"""``python -m jaxrt.bench.sharded``: rays sharded over every device against one device.
+
+Traces the same rays into a noisy 1M-triangle sphere (``--triangles``) with one plain
+``Intersector.intersect`` call on the first device and with the call wrapped in ``jax.shard_map`` over the ray
+axis of all devices (the structure replicated, as docs/performance.md gives), and reports Mrays/s of both,
+the speed-up, and whether every result field is equal (hit ids exactly, distances to rounding). On a CPU,
+``XLA_FLAGS=--xla_force_host_platform_device_count=N`` gives ``N`` devices.
+
+Flags: ``--triangles``, ``--rays``, ``--repeats``, ``--json PATH``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+import jax
+import numpy as np
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
+
+import jaxrt as rt
+from jaxrt.bench.gradients import camera_rays, noisy_sphere
+from jaxrt.bench.report import machine_info
+from jaxrt.bench.timing import timed
+
+__all__ = ["main"]
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    """Run, print one line per configuration, and write the JSON file if asked; returns the results."""
+    parser = argparse.ArgumentParser(prog="python -m jaxrt.bench.sharded", description=__doc__.splitlines()[0])
+    parser.add_argument("--triangles", type=int, default=1_000_000)
+    parser.add_argument("--rays", type=int, default=1 << 24)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--json", metavar="PATH")
+    args = parser.parse_args(argv)
+    vertices, indices = noisy_sphere(args.triangles)
+    structure = rt.build_primitive_structure(rt.TriangleGeometry(vertices, indices))
+    rays = camera_rays(args.rays).reshape(-1)
+    n = int(rays.origin.shape[0])
+    intersector = rt.Intersector(rt.tags.triangle_data)
+    single = jax.jit(intersector.intersect)
+    one, reference = timed(lambda: single(rays, structure), args.repeats)
+    devices = jax.device_count()
+    mesh = jax.make_mesh((devices,), ("rays",))
+    sharded = jax.jit(
+        jax.shard_map(intersector.intersect, mesh=mesh, in_specs=(P("rays"), P()), out_specs=P("rays"), check_vma=False)
+    )
+    spread = jax.device_put(rays, NamedSharding(mesh, P("rays")))
+    replicated = jax.device_put(structure, NamedSharding(mesh, P()))
+    many, out = timed(lambda: sharded(spread, replicated), args.repeats)
+    same_ids = all(
+        np.array_equal(np.asarray(out[name]), np.asarray(reference[name])) for name in ("type", "primitive_id")
+    )
+    hit = np.asarray(reference.primitive_id) >= 0
+    distance_gap = float(np.max(np.abs(np.asarray(out.distance)[hit] - np.asarray(reference.distance)[hit]), initial=0))
+    results = {
+        "machine": machine_info(),
+        "devices": devices,
+        "device_kinds": sorted({d.device_kind for d in jax.devices()}),
+        "rays": n,
+        "triangles": int(indices.shape[0]),
+        "one_device": one.as_dict(n),
+        "all_devices": many.as_dict(n),
+        "speedup": one.median_s / many.median_s if many.median_s > 0 else float("inf"),
+        "same_hits": same_ids,
+        "max_distance_difference": distance_gap,
+        "hits": int(hit.sum()),
+    }
+    print(f"{n:,} rays, {int(indices.shape[0]):,} triangles, {devices} device(s) of {results['device_kinds']}")
+    print(f"one device: {results['one_device']['mrays_s']:.1f} Mrays/s (compile {one.compile_s:.1f} s)")
+    print(f"{devices} devices: {results['all_devices']['mrays_s']:.1f} Mrays/s (compile {many.compile_s:.1f} s)")
+    print(f"speed-up {results['speedup']:.2f}x; same hits: {same_ids}; max distance difference {distance_gap:.2e}")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(results, f, indent=1)
+    return results
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
+    sys.exit(0)
