@@ -136,7 +136,8 @@ def test_query_candidates_are_the_non_opaque_hits_nearer_than_the_committed_one(
 
     seen, committed = jax.jit(jax.vmap(candidates))(rays)
     # The opaque triangles alone give the committed hit; count all hits of the clear geometry nearer than it.
-    opaque = rt.Intersector().intersect(rays, rt.build_primitive_structure(_geometries_of(structure)[1]))
+    solid = rt.build_primitive_structure(_geometries_of(structure)[1])
+    opaque = rt.Intersector(backend="portable").intersect(rays, solid)  # the same traversal code as the query
     np.testing.assert_array_equal(committed, opaque.distance)
     clear = rt.build_primitive_structure(_geometries_of(structure)[0])
     multi = rt.Intersector(max_hits=24)
