@@ -464,16 +464,19 @@ def curve_configuration(infos: tuple[CurveInfo, ...], curve_type: CurveType | No
 
 
 class CurveLeaves:
-    """Ray/curve tests of BVH leaves (a :class:`~jaxrt._src.traversal.stack.LeafTester`)."""
+    """Ray/curve tests of BVH leaves (a :class:`~jaxrt._src.traversal.stack.LeafTester`, and an
+    :class:`~jaxrt._src.traversal.instanced.InstancedLeafTester`: curves have no facing, so the per-level
+    ``facing`` of an instanced traversal is ignored)."""
 
     def __init__(self, leaf_curve: jax.Array, leaf_flags: jax.Array, curve_types, end_caps, options):
         self.leaf_curve = leaf_curve
         self.leaf_flags = leaf_flags
         self.config = dict(curve_types=curve_types, end_caps=end_caps, options=options)
 
-    def prepare(self, origin, direction):
+    def prepare(self, origin, direction, facing=None):
         from jaxrt._src.primitives import curve as primitive
 
+        del facing  # culling applies to triangles only
         return primitive.curve_ray(origin, direction)
 
     def __call__(self, context, leaves, t_min, t_max):
@@ -486,14 +489,17 @@ class CurveLeaves:
 
 
 class MixedLeaves:
-    """Triangle and curve leaves in one structure: both tests, selected by each leaf's kind."""
+    """Triangle and curve leaves in one structure (or scene): both tests, selected by each leaf's kind.
+
+    In an instanced traversal ``prepare`` also receives the level's ``facing``, which goes to the triangles.
+    """
 
     def __init__(self, triangles: Any, curves: CurveLeaves):
         self.triangles = triangles
         self.curves = curves
 
-    def prepare(self, origin, direction):
-        return self.triangles.prepare(origin, direction), self.curves.prepare(origin, direction)
+    def prepare(self, origin, direction, *facing):
+        return self.triangles.prepare(origin, direction, *facing), self.curves.prepare(origin, direction)
 
     def __call__(self, context, leaves, t_min, t_max):
         from jaxrt._src.primitives import curve as primitive
@@ -507,9 +513,11 @@ class MixedLeaves:
 def curve_hit_fields(structure, leaf, hit, origin, direction, t_min, t_max, distance, config):
     """For every ray, whether its hit is a curve, and that hit's differentiable ``(distance, u)``.
 
-    The traversal only picks the leaf: the chosen segment is tested again (exactly, for ``u``), then
-    :func:`jaxrt._src.primitives.curve.smooth_hit` attaches derivatives with respect to the segment's control
-    points and radii and to the ray, keeping the exact values.
+    ``structure`` is anything with ``leaf_curve`` and ``leaf_curve_flags`` indexed by ``leaf``: a primitive
+    structure, or an instanced scene's concatenated arrays (then ``origin`` and ``direction`` are the ray in
+    the hit instance's object space). The traversal only picks the leaf: the chosen segment is tested again
+    (exactly, for ``u``), then :func:`jaxrt._src.primitives.curve.smooth_hit` attaches derivatives with
+    respect to the segment's control points and radii and to the ray, keeping the exact values.
     """
     from jaxrt._src.primitives import curve as primitive
 

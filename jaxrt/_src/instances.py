@@ -678,8 +678,11 @@ def refit_instances(structure: InstanceAccelerationStructure, instances: Instanc
 class SceneArrays(NamedTuple):
     """All node arrays of a scene concatenated, with global indices (built inside ``jit`` per intersect).
 
-    Node children: an internal node ``c >= 0``; a leaf ``-1 - k`` is triangle leaf ``k`` when
-    ``k < triangle_leaves``, else instance ``k - triangle_leaves`` (a global instance index ``g``).
+    Node children: an internal node ``c >= 0``; a leaf ``-1 - k`` is primitive leaf ``k`` when
+    ``k < primitive_leaves``, else instance ``k - primitive_leaves`` (a global instance index ``g``). The
+    primitive leaves are those of every primitive structure, one structure after another, each padded to its
+    capacity; ``leaf_curve`` and ``leaf_curve_flags`` are present when some primitive structure holds curves
+    (zeros, without the curve bit, for the leaves of the others).
     """
 
     node_lower: jax.Array  # (M, 2, 3)
@@ -697,6 +700,21 @@ class SceneArrays(NamedTuple):
     local_index: jax.Array  # (G,) index of the instance within its structure
     user_id: jax.Array  # (G,) uint32
     options: jax.Array  # (G,) uint32
+    leaf_curve: jax.Array | None = None  # (LT, 6, 4) packed object-space segments, or None without curves
+    leaf_curve_flags: jax.Array | None = None  # (LT,) int32
+
+
+def _leaf_curves(prims: tuple[PrimitiveAccelerationStructure, ...]) -> tuple[jax.Array | None, jax.Array | None]:
+    """The curve leaves of all primitive structures, concatenated (zeros for structures without curves)."""
+    with_curves = [s for s in prims if s.leaf_curve is not None]
+    if not with_curves:
+        return None, None
+    dtype = with_curves[0].leaf_curve.dtype
+    segments = [
+        s.leaf_curve.astype(dtype) if s.leaf_curve is not None else jnp.zeros((s.capacity, 6, 4), dtype) for s in prims
+    ]
+    flags = [s.leaf_curve_flags if s.leaf_curve is not None else jnp.zeros((s.capacity,), jnp.int32) for s in prims]
+    return jnp.concatenate(segments), jnp.concatenate(flags).astype(jnp.int32)
 
 
 def scene_arrays(structure: InstanceAccelerationStructure) -> SceneArrays:
@@ -707,10 +725,10 @@ def scene_arrays(structure: InstanceAccelerationStructure) -> SceneArrays:
     node_offset = np.concatenate([[0], np.cumsum(node_counts)]).astype(np.int64)
     leaf_counts = [s.capacity for s in prims]
     leaf_offset = np.concatenate([[0], np.cumsum(leaf_counts)]).astype(np.int64)
-    triangle_leaves = int(leaf_offset[-1])
+    primitive_leaves = int(leaf_offset[-1])
     instance_counts = [t.instance_slots for t in tables]
     instance_offset = np.concatenate([[0], np.cumsum(instance_counts)]).astype(np.int64)
-    if node_offset[-1] + 1 >= 2**31 or triangle_leaves + instance_offset[-1] >= 2**31:
+    if node_offset[-1] + 1 >= 2**31 or primitive_leaves + instance_offset[-1] >= 2**31:
         raise ValueError("intersect: the scene has more than 2**31 nodes or leaves")
 
     children = []
@@ -720,7 +738,7 @@ def scene_arrays(structure: InstanceAccelerationStructure) -> SceneArrays:
     for j, t in enumerate(tables):
         c = t.node_children
         instance = t.leaf_instance[jnp.maximum(-1 - c, 0)]
-        leaf = -1 - (triangle_leaves + int(instance_offset[j]) + jnp.maximum(instance, 0))
+        leaf = -1 - (primitive_leaves + int(instance_offset[j]) + jnp.maximum(instance, 0))
         children.append(jnp.where(c >= 0, c + int(node_offset[p + j]), leaf))
 
     child_root = []
@@ -734,6 +752,7 @@ def scene_arrays(structure: InstanceAccelerationStructure) -> SceneArrays:
     ccw = (options & InstanceOptions.TRIANGLE_FRONT_FACING_WINDING_COUNTERCLOCKWISE) != 0
     flip = jnp.where((det < 0) ^ ccw, -1, 1).astype(jnp.int32)
     cull = jnp.where((options & InstanceOptions.DISABLE_TRIANGLE_CULLING) != 0, 0, 1).astype(jnp.int32)
+    leaf_curve, leaf_curve_flags = _leaf_curves(prims)
     return SceneArrays(
         node_lower=jnp.concatenate([s.node_lower for s in prims] + [t.node_lower for t in tables]),
         node_upper=jnp.concatenate([s.node_upper for s in prims] + [t.node_upper for t in tables]),
@@ -750,6 +769,8 @@ def scene_arrays(structure: InstanceAccelerationStructure) -> SceneArrays:
         local_index=jnp.concatenate([jnp.arange(n, dtype=jnp.int32) for n in instance_counts]),
         user_id=jnp.concatenate([t.user_id for t in tables]),
         options=options,
+        leaf_curve=leaf_curve,
+        leaf_curve_flags=leaf_curve_flags,
     )
 
 
@@ -760,6 +781,6 @@ def scene_root(structure: InstanceAccelerationStructure) -> int:
     return int(sum(counts))
 
 
-def triangle_leaf_count(structure: InstanceAccelerationStructure) -> int:
-    """Number of triangle leaves in :func:`scene_arrays` (the start of the instance leaf range)."""
+def primitive_leaf_count(structure: InstanceAccelerationStructure) -> int:
+    """Number of primitive leaves in :func:`scene_arrays` (the start of the instance leaf range)."""
     return int(sum(s.capacity for s in structure.primitive_structures))

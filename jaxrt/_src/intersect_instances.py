@@ -1,10 +1,14 @@
 """Intersection with instance structures: the instancing tags, the instanced traversal, and the result fields.
 
 The traversal picks the leaf and the instance chain of the nearest accepted hit (detached). The hit is then
-recomputed in JAX with the chain's transforms: the exact values (distance from the traversal, barycentrics
-from the object-space ray) carry the gradients of a smooth world-space re-intersection of the triangle with
-its vertices moved by the composed object-to-world transform. So distances, barycentrics and world-space
-transforms differentiate with respect to instance transforms, vertices and rays, holding the hit fixed.
+recomputed in JAX with the chain's transforms. Triangles: the exact values (distance from the traversal,
+barycentrics from the object-space ray) carry the gradients of a smooth world-space re-intersection of the
+triangle with its vertices moved by the composed object-to-world transform. Curves are traced in object space
+(as Metal, OptiX and Embree do): the segment is tested again with the object-space ray, computed level by
+level as the traversal did, and its differentiable re-computation takes that ray as a function of the world
+ray and the instance transforms. So distances, barycentrics, curve parameters and world-space transforms
+differentiate with respect to instance transforms, vertices, control points, radii and rays, holding the hit
+fixed.
 """
 
 from __future__ import annotations
@@ -16,13 +20,15 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from jaxrt._src import curves as curve_support
 from jaxrt._src.instances import (
     InstanceAccelerationStructure,
     apply_transform,
     compose_transforms,
+    invert_transform,
+    primitive_leaf_count,
     scene_arrays,
     scene_root,
-    triangle_leaf_count,
 )
 from jaxrt._src.primitives import triangle
 from jaxrt._src.result import IntersectionResult, IntersectionType
@@ -91,6 +97,35 @@ class InstancedTriangleLeaves:
         return accept, hit.distance
 
 
+def curve_config(intersector: Any, structure: InstanceAccelerationStructure) -> dict:
+    """The static curve code choices for every curve geometry below ``structure`` (all levels share them)."""
+    infos = tuple(g.curve for s in structure.primitive_structures for g in s.geometry_info if g.curve is not None)
+    return curve_support.curve_configuration(infos, intersector.curve_type, intersector.curve_options)
+
+
+def _leaf_tester(intersector: Any, structure: InstanceAccelerationStructure, scene: Any):
+    """The triangle test, the curve test, or both selected per leaf: only the kinds below ``structure``."""
+    detached = lax.stop_gradient
+    triangles = InstancedTriangleLeaves(detached(scene.leaf_triangle), intersector._cull)
+    if scene.leaf_curve is None:
+        return triangles
+    config = curve_config(intersector, structure)
+    curves = curve_support.CurveLeaves(detached(scene.leaf_curve), scene.leaf_curve_flags, **config)
+    kinds = {g.kind for s in structure.primitive_structures for g in s.geometry_info}
+    return curve_support.MixedLeaves(triangles, curves) if "triangle" in kinds else curves
+
+
+def _object_ray(origin: jax.Array, direction: jax.Array, to_object: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The ray ``(n, 3)`` in the space of the chain's last instance, moved level by level by ``to_object``
+    ``(n, L, 3, 4)`` (identity past the chain) with the traversal's arithmetic, so that a re-test sees the
+    ray the traversal tested."""
+    for level in range(to_object.shape[1]):
+        m = to_object[:, level]
+        origin = jnp.sum(m[..., :3] * origin[:, None, :], axis=-1) + m[..., 3]
+        direction = jnp.sum(m[..., :3] * direction[:, None, :], axis=-1)
+    return origin, direction
+
+
 def _pad_levels(values: jax.Array, n: int, fill) -> jax.Array:
     """``(rays, L)`` to ``(rays, n)`` with ``fill`` past ``L``."""
     extra = n - values.shape[1]
@@ -127,10 +162,10 @@ def _trace(intersector, structure, scene, origin, direction, t_min, t_max, enabl
         ),
         mask=scene.mask,
     )
-    leaves = InstancedTriangleLeaves(detached(scene.leaf_triangle), intersector._cull)
+    leaves = _leaf_tester(intersector, structure, scene)
     options = dict(
         root=scene_root(structure),
-        triangle_leaves=triangle_leaf_count(structure),
+        primitive_leaves=primitive_leaf_count(structure),
         levels=structure.levels,
         any_hit=intersector.accept_any_intersection,
         stack_size=structure.max_depth,
@@ -161,27 +196,48 @@ def intersect_instances(intersector: Any, rays: Any, structure: InstanceAccelera
 
     detached = lax.stop_gradient
     dtype = origin.dtype
-    hit = found.leaf >= 0
+    any_hit = found.leaf >= 0
     leaf = jnp.maximum(found.leaf, 0)
-    chain = jnp.where(hit[:, None], found.instances, -1)  # (n, L)
+    chain = jnp.where(any_hit[:, None], found.instances, -1)  # (n, L)
     valid = chain >= 0
     g = jnp.maximum(chain, 0)
     levels = chain.shape[1]
-    fields: dict[str, Any] = {
-        "type": jnp.where(hit, int(IntersectionType.TRIANGLE), int(IntersectionType.NONE)).astype(jnp.int32),
-        "distance": None,
-        "primitive_id": jnp.where(hit, scene.leaf_primitive[leaf], -1),
-        "geometry_id": jnp.where(hit, scene.leaf_geometry[leaf], -1),
-    }
 
     identity = jnp.eye(3, 4, dtype=dtype)
+    # The stored inverses (the values the traversal used), differentiated as the inverse of the transforms.
+    inverse = invert_transform(scene.transform)
+    world_to_object_rows = detached(scene.world_to_object) + (inverse - detached(inverse))
     to_world = jnp.where(valid[..., None, None], scene.transform[g], identity)  # (n, L, 3, 4)
-    to_object = jnp.where(valid[..., None, None], scene.world_to_object[g], identity)
+    to_object = jnp.where(valid[..., None, None], world_to_object_rows[g], identity)
     object_to_world = jnp.broadcast_to(identity, (chain.shape[0], 3, 4))
     world_to_object = object_to_world
     for level in range(levels):
         object_to_world = compose_transforms(object_to_world, to_world[:, level])
         world_to_object = compose_transforms(to_object[:, level], world_to_object)
+    curves = scene.leaf_curve is not None
+    if curves or intersector.has("triangle_data"):
+        object_origin, object_direction = _object_ray(origin, direction, to_object)
+
+    hit = any_hit  # triangle hits
+    if curves:  # curve hits: re-tested in object space; triangles take the rest
+        is_curve, curve_t, curve_u = curve_support.curve_hit_fields(
+            scene,
+            leaf,
+            any_hit,
+            object_origin,
+            object_direction,
+            t_min,
+            t_max,
+            found.distance,
+            curve_config(intersector, structure),
+        )
+        hit = any_hit & ~is_curve
+    fields: dict[str, Any] = {
+        "type": jnp.where(hit, int(IntersectionType.TRIANGLE), int(IntersectionType.NONE)).astype(jnp.int32),
+        "distance": None,
+        "primitive_id": jnp.where(any_hit, scene.leaf_primitive[leaf], -1),
+        "geometry_id": jnp.where(any_hit, scene.leaf_geometry[leaf], -1),
+    }
 
     # Re-intersect the chosen triangle: exact values from the traversal's object-space test, gradients from a
     # smooth test in world space with the vertices moved by the chain's composed transform.
@@ -199,19 +255,19 @@ def intersect_instances(intersector: Any, rays: Any, structure: InstanceAccelera
     fields["distance"] = jnp.where(hit, attach(found.distance, smooth_t), jnp.inf)
     if intersector.has("triangle_data"):
         # The object-space ray as the traversal computed it, level by level.
-        object_origin, object_direction = detached(origin), detached(direction)
-        for level in range(levels):
-            m = detached(to_object[:, level])
-            object_origin = jnp.einsum("nij,nj->ni", m[..., :3], object_origin) + m[..., 3]
-            object_direction = jnp.einsum("nij,nj->ni", m[..., :3], object_direction)
-        object_direction = jnp.where(hit[:, None], object_direction, unit_z)
-        sheared = jax.vmap(triangle.shear_ray)(object_origin, object_direction)
+        triangle_direction = jnp.where(hit[:, None], detached(object_direction), unit_z)
+        sheared = jax.vmap(triangle.shear_ray)(detached(object_origin), triangle_direction)
         u, v, clockwise = jax.vmap(triangle.barycentrics)(sheared, detached(vertices))
         fields["triangle_barycentric_coord"] = jnp.stack([attach(u, smooth_u), attach(v, smooth_v)], axis=-1)
         flips = jnp.prod(jnp.where(valid, scene.flip[g], 1), axis=1)
         clockwise = clockwise ^ (flips < 0)
         front = clockwise if intersector.front_facing_winding == "clockwise" else ~clockwise
         fields["triangle_front_facing"] = hit & front
+    if curves:
+        fields["type"] = jnp.where(is_curve, int(IntersectionType.CURVE), fields["type"]).astype(jnp.int32)
+        fields["distance"] = jnp.where(is_curve, curve_t, fields["distance"])
+    if intersector.has("curve_data"):
+        fields["curve_parameter"] = jnp.where(is_curve, curve_u, 0.0) if curves else jnp.zeros_like(found.distance)
 
     n_levels = max_levels(intersector)
     fields["instance_id"] = _pad_levels(jnp.where(valid, scene.local_index[g], -1), n_levels, -1)
@@ -219,8 +275,8 @@ def intersect_instances(intersector: Any, rays: Any, structure: InstanceAccelera
     user = jnp.where(valid, scene.user_id[g], jnp.uint32(NO_USER_ID)).astype(jnp.uint32)
     fields["user_instance_id"] = _pad_levels(user, n_levels, NO_USER_ID)
     if intersector.has("world_space_data"):
-        fields["object_to_world_transform"] = jnp.where(hit[:, None, None], object_to_world, 0.0)
-        fields["world_to_object_transform"] = jnp.where(hit[:, None, None], world_to_object, 0.0)
+        fields["object_to_world_transform"] = jnp.where(any_hit[:, None, None], object_to_world, 0.0)
+        fields["world_to_object_transform"] = jnp.where(any_hit[:, None, None], world_to_object, 0.0)
     if intersector.has("stats"):
         fields["nodes_visited"] = found.nodes_visited
         fields["primitives_tested"] = found.primitives_tested

@@ -24,6 +24,10 @@ Masks: an instance child whose ``mask & ray.mask`` is zero is skipped like a mis
 Facing: each level carries ``facing`` in {-1, 0, +1}: the product of the chain's winding flips (mirroring
 transforms and the counterclockwise option), or 0 below an instance that disables triangle culling. The
 leaf tester receives it in ``prepare`` and culls in object space with the flipped sense.
+
+Primitive kinds: the traversal knows none. The leaf tester prepares its per-ray constants from the ray of the
+level being walked (object space: triangles shear it, curves build their ray frame from the unnormalised
+direction, so their distances are world-space parameters too) and tests leaves by global index.
 """
 
 from __future__ import annotations
@@ -87,7 +91,7 @@ def _unpack(row: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
 
 class InstancedTraversalResult(NamedTuple):
     distance: jax.Array  # inf on a miss
-    leaf: jax.Array  # global triangle leaf, -1 on a miss
+    leaf: jax.Array  # global primitive leaf, -1 on a miss
     instances: jax.Array  # (levels,) global instance ids of the hit's chain, outermost first, -1 past it
     nodes_visited: jax.Array
     primitives_tested: jax.Array
@@ -169,7 +173,7 @@ def _start(leaf_tester, root, levels, origin, direction, t_min, t_max, enabled, 
     return ray, state
 
 
-def _visit(scene: InstancedScene, leaf_tester, triangle_leaves: int, ray: _Ray, s: _State, any_hit: bool) -> _State:
+def _visit(scene: InstancedScene, leaf_tester, primitive_leaves: int, ray: _Ray, s: _State, any_hit: bool) -> _State:
     """Visit one internal node with the loaded ray and choose the next entry (a node or an instance).
 
     The next entry and the level it belongs to are left in ``node`` and ``level``; :func:`_transition` then
@@ -186,12 +190,12 @@ def _visit(scene: InstancedScene, leaf_tester, triangle_leaves: int, ray: _Ray, 
     box_hit &= active
     leaf_index = -1 - children
     is_leaf = children < 0
-    is_triangle = is_leaf & (leaf_index < triangle_leaves)
-    is_instance = is_leaf & ~is_triangle
-    instance = jnp.clip(leaf_index - triangle_leaves, 0, instances - 1)
+    is_primitive = is_leaf & (leaf_index < primitive_leaves)
+    is_instance = is_leaf & ~is_primitive
+    instance = jnp.clip(leaf_index - primitive_leaves, 0, instances - 1)
     visible = (scene.mask[instance] & ray.mask) != 0
 
-    test = is_triangle & box_hit
+    test = is_primitive & box_hit
     leaf_hit, leaf_t = leaf_tester(s.context, jnp.where(test, leaf_index, -1), ray.t_min, s.distance)
     leaf_hit &= test
     leaf_t = jnp.where(leaf_hit, leaf_t, jnp.inf)
@@ -301,7 +305,7 @@ def traverse(
     mask: jax.Array,
     *,
     root: int,
-    triangle_leaves: int,
+    primitive_leaves: int,
     levels: int,
     any_hit: bool,
     stack_size: int,
@@ -316,13 +320,13 @@ def traverse(
       enabled: scalar bool; a disabled ray takes no step.
       mask: uint32 ray mask, AND-ed with instance masks.
       root: static global index of the root node.
-      triangle_leaves: static number of primitive leaves (instance leaves follow them).
+      primitive_leaves: static number of primitive leaves (instance leaves follow them).
       levels: static instance levels of the scene.
       any_hit: static; stop at the first accepted hit.
       stack_size: static stack depth (the scene's ``max_depth``).
     """
     ray, state = _start(leaf_tester, root, levels, origin, direction, t_min, t_max, enabled, mask, stack_size)
-    body = lambda s: _transition(scene, leaf_tester, ray, _visit(scene, leaf_tester, triangle_leaves, ray, s, any_hit))  # noqa: E731
+    body = lambda s: _transition(scene, leaf_tester, ray, _visit(scene, leaf_tester, primitive_leaves, ray, s, any_hit))  # noqa: E731
     return _result(lax.while_loop(lambda s: ~s.done, body, state))
 
 
@@ -337,7 +341,7 @@ def traverse_refill(
     mask: jax.Array,
     *,
     root: int,
-    triangle_leaves: int,
+    primitive_leaves: int,
     levels: int,
     any_hit: bool,
     stack_size: int,
@@ -355,7 +359,7 @@ def traverse_refill(
     width = min(lanes, n)
     start = lambda *a: _start(leaf_tester, root, levels, *a, 1)  # noqa: E731
     rays, initial = jax.vmap(start)(origin, direction, t_min, t_max, enabled, mask)
-    visit = jax.vmap(lambda r, s: _visit(scene, leaf_tester, triangle_leaves, r, s, any_hit))
+    visit = jax.vmap(lambda r, s: _visit(scene, leaf_tester, primitive_leaves, r, s, any_hit))
     transition = jax.vmap(lambda r, s: _transition(scene, leaf_tester, r, s))
 
     def step(r: _Ray, s: _State) -> _State:
