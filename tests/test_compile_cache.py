@@ -12,7 +12,6 @@ import contextlib
 
 import jax
 import numpy as np
-import pytest
 
 import jaxrt as rt
 
@@ -74,11 +73,6 @@ def test_ray_counts_in_one_power_of_two_bucket_share_compiled_code():
     assert result.distance.shape == (700,)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="known bug: the primitive counts are static metadata of the structure pytree, so a structure with "
-    "another primitive count recompiles the traversal even at the same capacity",
-)
 def test_new_structure_of_the_same_capacity_does_not_recompile_the_traversal():
     rays = _rays(300, 10)
     first = rt.build_primitive_structure(_geometry(37, 11), capacity=1024)  # the shapes of the first test

@@ -14,6 +14,8 @@ array               shape, dtype    contents
 ``leaf_geometry``   (C,) i32        geometry index of the primitive in leaf ``k``; -1 for padding
 ``leaf_primitive``  (C,) i32        primitive index within its geometry; -1 for padding
 ``leaf_triangle``   (C, 3, 3) f     the three vertices of leaf ``k``'s triangle, in leaf order (padding 0)
+``geometry_primitive_count`` (G,) i32  primitives of each geometry (an array, so that structures of one
+                                    capacity and kinds share the compiled traversal whatever their counts)
 ``leaf_curve``      (C, 6, 4) f     with curves only (else ``None``): leaf ``k``'s curve segment packed by
                                     :func:`jaxrt._src.curves.pack_segments` (cubic Bezier points relative to
                                     the segment's first control point, that point, and the predecessor's
@@ -40,6 +42,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 
 from jaxrt._src.bvh.boxes import child_boxes, range_boxes
@@ -59,7 +62,6 @@ class GeometryInfo:
     """Static description of one geometry in a structure."""
 
     kind: str
-    primitive_count: int
     opaque: bool
     curve: CurveInfo | None = None  # basis, control point count, type and end caps of a curve geometry
 
@@ -80,6 +82,7 @@ class PrimitiveAccelerationStructure:
     leaf_geometry: jax.Array
     leaf_primitive: jax.Array
     leaf_triangle: jax.Array
+    geometry_primitive_count: jax.Array
     geometry_info: tuple[GeometryInfo, ...] = dataclasses.field(metadata=dict(static=True))
     leaf_curve: jax.Array | None = None
     leaf_curve_flags: jax.Array | None = None
@@ -93,8 +96,8 @@ class PrimitiveAccelerationStructure:
 
     @property
     def primitive_count(self) -> int:
-        """Number of real primitives over all geometries."""
-        return sum(g.primitive_count for g in self.geometry_info)
+        """Number of real primitives over all geometries (on the host: not inside ``jax.jit``)."""
+        return int(np.sum(np.asarray(self.geometry_primitive_count)))
 
     @property
     def levels(self) -> int:
@@ -120,7 +123,7 @@ _GEOMETRY_CLASSES = (TriangleGeometry, CurveGeometry, BoundingBoxGeometry)
 
 
 def _geometry_info(g: TriangleGeometry | CurveGeometry | BoundingBoxGeometry) -> GeometryInfo:
-    return GeometryInfo(g.kind, g.primitive_count, g.opaque, g.info if isinstance(g, CurveGeometry) else None)
+    return GeometryInfo(g.kind, g.opaque, g.info if isinstance(g, CurveGeometry) else None)
 
 
 def _as_geometry_tuple(geometries: Any) -> tuple[TriangleGeometry, ...]:
@@ -238,6 +241,7 @@ def _build(
         leaf_geometry=geometry_id[order],
         leaf_primitive=primitive_id[order],
         leaf_triangle=triangles[order],
+        geometry_primitive_count=jnp.asarray([g.primitive_count for g in geometries], jnp.int32),
         geometry_info=info,
         leaf_curve=None if curves is None else curves.segments[order],
         leaf_curve_flags=None if curves is None else curves.flags[order],
@@ -334,4 +338,9 @@ def refit(structure: PrimitiveAccelerationStructure, geometries: Any) -> Primiti
     info = tuple(_geometry_info(g) for g in geometries)
     if info != structure.geometry_info:
         raise ValueError(f"refit: geometries {info} do not match the structure's {structure.geometry_info}")
+    counts = [g.primitive_count for g in geometries]
+    if not isinstance(structure.geometry_primitive_count, jax.core.Tracer):
+        have = np.asarray(structure.geometry_primitive_count).tolist()
+        if counts != have:
+            raise ValueError(f"refit: the geometries have {counts} primitives, the structure was built from {have}")
     return _refit_jit(structure, geometries)
