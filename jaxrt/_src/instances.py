@@ -48,7 +48,7 @@ from jaxrt._src.bvh.boxes import child_boxes, range_boxes
 from jaxrt._src.bvh.morton import morton_codes
 from jaxrt._src.bvh.radix_tree import build_radix_tree
 from jaxrt._src.geometry import float_dtype
-from jaxrt._src.numerics import gamma
+from jaxrt._src.numerics import full_precision, gamma
 from jaxrt._src.structures import PrimitiveAccelerationStructure, capacity_bucket
 
 __all__ = [
@@ -236,6 +236,7 @@ class Instances:
 # --- affine transforms ----------------------------------------------------------------------------------------
 
 
+@full_precision
 def invert_transform(transform: jax.Array) -> jax.Array:
     """Inverse of ``(..., 3, 4)`` affine transforms (adjugate over determinant; differentiable)."""
     a = transform[..., :3]
@@ -249,6 +250,7 @@ def invert_transform(transform: jax.Array) -> jax.Array:
     return jnp.concatenate([inverse, -jnp.einsum("...ij,...j->...i", inverse, t)[..., None]], axis=-1)
 
 
+@full_precision
 def compose_transforms(outer: jax.Array, inner: jax.Array) -> jax.Array:
     """``outer o inner`` for ``(..., 3, 4)`` affine transforms (apply ``inner`` first)."""
     linear = jnp.einsum("...ij,...jk->...ik", outer[..., :3], inner[..., :3])
@@ -256,12 +258,14 @@ def compose_transforms(outer: jax.Array, inner: jax.Array) -> jax.Array:
     return jnp.concatenate([linear, translation[..., None]], axis=-1)
 
 
+@full_precision
 def apply_transform(transform: jax.Array, point: jax.Array, *, vector: bool = False) -> jax.Array:
     """``transform`` ``(3, 4)`` applied to ``(..., 3)`` points (or, with ``vector``, directions)."""
     out = jnp.einsum("ij,...j->...i", transform[:, :3], point)
     return out if vector else out + transform[:, 3]
 
 
+@full_precision
 def _transform_boxes(transform: jax.Array, lower: jax.Array, upper: jax.Array) -> tuple[jax.Array, jax.Array]:
     """World boxes ``(N, 3)`` around the transformed corners of object boxes ``(N, B, 3)``, padded outwards.
 
@@ -455,6 +459,7 @@ def _child_boxes(roots: list) -> tuple[jax.Array, jax.Array]:
     return lax.stop_gradient(lower), lax.stop_gradient(upper)
 
 
+@full_precision
 def _build_table(
     child_lower: jax.Array,
     child_upper: jax.Array,

@@ -14,6 +14,7 @@ from jaxrt._src import curves as curve_support
 from jaxrt._src import custom_leaves as custom
 from jaxrt._src import intersect_instances as instancing
 from jaxrt._src.instances import InstanceAccelerationStructure
+from jaxrt._src.numerics import full_precision
 from jaxrt._src.primitive_data import data_at
 from jaxrt._src.primitives import triangle
 from jaxrt._src.ray import Ray
@@ -604,6 +605,7 @@ def _trace(intersector, structure, origin, direction, t_min, t_max, enabled):
 
 
 @functools.partial(jax.jit, static_argnums=0)
+@full_precision
 def _intersect_jit(
     intersector: Intersector, rays: Ray, structure: PrimitiveAccelerationStructure | InstanceAccelerationStructure
 ) -> IntersectionResult:

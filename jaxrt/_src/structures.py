@@ -51,6 +51,7 @@ from jaxrt._src.bvh.ploc import restructure
 from jaxrt._src.bvh.radix_tree import build_radix_tree
 from jaxrt._src.curves import CurveGeometry, CurveInfo, curve_leaves
 from jaxrt._src.geometry import BoundingBoxGeometry, TriangleGeometry
+from jaxrt._src.numerics import full_precision
 from jaxrt._src.primitive_data import gather_leaf_data, primitive_data_layout
 from jaxrt._src.primitives import triangle
 
@@ -206,6 +207,7 @@ def _node_boxes(children, node_range, leaf_lower, leaf_upper):
     return child_boxes(children, lower, upper, leaf_lower, leaf_upper)
 
 
+@full_precision
 def _build(
     geometries: tuple[TriangleGeometry, ...], capacity: int, quality: str = "fast"
 ) -> PrimitiveAccelerationStructure:
@@ -297,6 +299,7 @@ def build_primitive_structure(
     return _build_jit(geometries, capacity_bucket(total, capacity), quality)
 
 
+@full_precision
 def _refit(structure: PrimitiveAccelerationStructure, geometries: tuple[TriangleGeometry, ...]):
     triangles, _, _, lower, upper, _, curves, boxes = _leaf_primitives(geometries, structure.capacity)
     # Leaf k holds unsorted slot order[k]; recover it from the stored ids (slot = offset + primitive).
