@@ -5,6 +5,7 @@
 #   bash scripts/device_run.sh core     core bench, gradient bench, GPU + gradient tests
 #   bash scripts/device_run.sh more     instancing and curve benches
 #   bash scripts/device_run.sh custom   custom-geometry bench and tests, curve bench, sharded bench (all GPUs)
+#   bash scripts/device_run.sh final    GPU, custom-geometry, query and gradient tests; curve and instancing benches
 set -uo pipefail
 part=${1:-core}
 out=${OUT:-/tmp/out}
@@ -33,6 +34,14 @@ case $part in
     step custom_tests 120 python3 -m pytest tests/test_gradients_custom.py tests/test_query.py tests/test_gpu.py \
       -q -p no:cacheprovider -rs -k "not interpreter" -x
     step curves 180 python3 -m jaxrt.bench.curves --json "$out/curves.json"
+    ;;
+  final)
+    step tests 260 python3 -m pytest tests/test_gpu.py tests/test_gradients_custom.py tests/test_query.py \
+      tests/test_custom_geometry.py tests/test_multi_hit.py tests/test_gradients_curves.py -q -p no:cacheprovider \
+      -rs -k "not interpreter"
+    step curves 200 python3 -m jaxrt.bench.curves --scenes ponytail bear --settings 8,3 4,2 --tubes 6,2 \
+      --json "$out/curves.json"
+    step instancing 120 python3 -m jaxrt.bench.instancing --json "$out/instancing.json"
     ;;
 esac
 for f in "$out"/*.log; do echo "##### $f"; tail -n 40 "$f"; done
