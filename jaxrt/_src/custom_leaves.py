@@ -30,6 +30,8 @@ __all__ = [
     "check_user_functions",
     "filtered_geometries",
     "function_ray",
+    "geometry_table",
+    "leaf_flag",
 ]
 
 
@@ -45,11 +47,17 @@ def filtered_geometries(intersector: Any, structure: Any) -> tuple[int, ...]:
     return tuple(i for i, g in enumerate(structure.geometry_info) if g.kind == "triangle" and not g.opaque)
 
 
-def _table(count: int, members: tuple[int, ...]) -> jax.Array:
-    """A bool lookup table over geometry indices (index ``count`` stands for padding)."""
+def geometry_table(count: int, members: tuple[int, ...]) -> jax.Array:
+    """A bool lookup table over ``count`` geometry indices, True at ``members``; a last row stands for padding."""
     table = np.zeros(count + 1, bool)
     table[list(members)] = True
     return jnp.asarray(table)
+
+
+def leaf_flag(table: jax.Array, leaf_geometry: jax.Array, leaves: jax.Array) -> jax.Array:
+    """``table``'s entry for the geometry of each leaf (padding leaves, geometry -1, read the padding row)."""
+    geometry = leaf_geometry[jnp.maximum(leaves, 0)]
+    return table[jnp.where(geometry < 0, table.shape[0] - 1, geometry)]
 
 
 def function_ray(origin: jax.Array, direction: jax.Array, t_min: jax.Array, t_max: jax.Array) -> Ray:
@@ -119,7 +127,7 @@ class FilteredTriangleLeaves:
         self.cull = cull
         self.clockwise_front = clockwise_front
         self.filter_fn = filter_fn
-        self.non_opaque = _table(len(structure.geometry_info), filtered)
+        self.non_opaque = geometry_table(len(structure.geometry_info), filtered)
 
     def prepare(self, origin, direction):
         return triangle.shear_ray(origin, direction)
@@ -140,8 +148,7 @@ class FilteredTriangleLeaves:
     def test(self, context, leaf, t_min, t_max) -> tuple[triangle.TriangleHit, jax.Array]:
         """The watertight hit of one leaf and whether the filter must decide it."""
         hit = triangle.watertight(context, t_min, t_max, self.leaf_triangle[jnp.maximum(leaf, 0)], self.cull)
-        geometry = self.leaf_geometry[jnp.maximum(leaf, 0)]
-        filtered = self.non_opaque[jnp.where(geometry < 0, self.non_opaque.shape[0] - 1, geometry)]
+        filtered = leaf_flag(self.non_opaque, self.leaf_geometry, leaf)
         return hit, filtered & hit.hit & (leaf >= 0)
 
     def __call__(self, context, leaves, t_min, t_max):
@@ -161,7 +168,7 @@ class KindLeaves:
         self.others = others
         self.boxes = boxes
         self.leaf_geometry = structure.leaf_geometry
-        self.is_box = _table(len(structure.geometry_info), box_geometries(structure))
+        self.is_box = geometry_table(len(structure.geometry_info), box_geometries(structure))
 
     def prepare(self, origin, direction):
         return self.others.prepare(origin, direction), self.boxes.prepare(origin, direction)
@@ -169,8 +176,7 @@ class KindLeaves:
     def __call__(self, context, leaves, t_min, t_max):
         other_hit, other_t = self.others(context[0], leaves, t_min, t_max)
         box_hit, box_t = self.boxes(context[1], leaves, t_min, t_max)
-        geometry = self.leaf_geometry[jnp.maximum(leaves, 0)]
-        is_box = self.is_box[jnp.where(geometry < 0, self.is_box.shape[0] - 1, geometry)]
+        is_box = leaf_flag(self.is_box, self.leaf_geometry, leaves)
         return jnp.where(is_box, box_hit, other_hit), jnp.where(is_box, box_t, other_t)
 
 

@@ -517,8 +517,8 @@ def _hit_fields(intersector, structure, origin, direction, t_min, t_max, leaf, d
         )
         hit = hit & ~is_curve
     if structure.leaf_box is not None:
-        is_box_table = jnp.asarray([g.kind == "bounding_box" for g in infos] + [False])
-        is_box = found & is_box_table[structure.leaf_geometry[leaf]]
+        is_box_table = custom.geometry_table(len(infos), custom.box_geometries(structure))
+        is_box = found & custom.leaf_flag(is_box_table, structure.leaf_geometry, leaf)
         box_t = _box_distance(intersector, structure, leaf, is_box, origin, direction, t_min, t_max, distance)
         hit = hit & ~is_box
     kind = jnp.where(hit, int(IntersectionType.TRIANGLE), int(IntersectionType.NONE))

@@ -58,15 +58,17 @@ class _OpaqueLeaves:
 
     def __call__(self, context, leaves, t_min, t_max):
         hit, t = self.inner(context, leaves, t_min, t_max)
-        geometry = self.leaf_geometry[jnp.maximum(leaves, 0)]
-        candidate = self.table[jnp.where(geometry < 0, self.table.shape[0] - 1, geometry)]
+        candidate = custom.leaf_flag(self.table, self.leaf_geometry, leaves)
         return hit & ~candidate, jnp.where(candidate, jnp.inf, t)
 
 
 def _candidate_table(structure: PrimitiveAccelerationStructure) -> jax.Array:
     """Geometries whose primitives are candidates: non-opaque triangles and boxes (padding row last)."""
-    flags = [(g.kind == "triangle" and not g.opaque) or g.kind == "bounding_box" for g in structure.geometry_info]
-    return jnp.asarray(flags + [False])
+    infos = structure.geometry_info
+    members = tuple(
+        i for i, g in enumerate(infos) if (g.kind == "triangle" and not g.opaque) or g.kind == "bounding_box"
+    )
+    return custom.geometry_table(len(infos), members)
 
 
 @jax.tree_util.register_dataclass
@@ -141,13 +143,17 @@ class IntersectionQuery:
         """``rt.IntersectionType`` of the candidate (``NONE`` without one)."""
         return self._kind(self.candidate)
 
+    def _id(self, ids: jax.Array, leaf: jax.Array) -> jax.Array:
+        """``ids`` (a leaf-ordered id array) at ``leaf``; -1 without a leaf."""
+        return jnp.where(leaf >= 0, ids[jnp.maximum(leaf, 0)], -1)
+
     @property
     def candidate_primitive_id(self) -> jax.Array:
-        return jnp.where(self.has_candidate, self.structure.leaf_primitive[jnp.maximum(self.candidate, 0)], -1)
+        return self._id(self.structure.leaf_primitive, self.candidate)
 
     @property
     def candidate_geometry_id(self) -> jax.Array:
-        return jnp.where(self.has_candidate, self.structure.leaf_geometry[jnp.maximum(self.candidate, 0)], -1)
+        return self._id(self.structure.leaf_geometry, self.candidate)
 
     @property
     def candidate_triangle_distance(self) -> jax.Array:
@@ -190,11 +196,11 @@ class IntersectionQuery:
 
     @property
     def committed_primitive_id(self) -> jax.Array:
-        return jnp.where(self.state.leaf >= 0, self.structure.leaf_primitive[jnp.maximum(self.state.leaf, 0)], -1)
+        return self._id(self.structure.leaf_primitive, self.state.leaf)
 
     @property
     def committed_geometry_id(self) -> jax.Array:
-        return jnp.where(self.state.leaf >= 0, self.structure.leaf_geometry[jnp.maximum(self.state.leaf, 0)], -1)
+        return self._id(self.structure.leaf_geometry, self.state.leaf)
 
     @property
     def committed_triangle_barycentric_coord(self) -> jax.Array:
@@ -244,9 +250,7 @@ def _advance(q: IntersectionQuery) -> IntersectionQuery:
         ray.origin, ray.inv_direction, ray.t_min, s.distance, structure.node_lower[s.node], structure.node_upper[s.node]
     )
     leaves = jnp.where((children < 0) & box_hit & ~s.done, -1 - children, -1)
-    geometry = structure.leaf_geometry[jnp.maximum(leaves, 0)]
-    table = _candidate_table(structure)
-    is_candidate = (leaves >= 0) & table[jnp.where(geometry < 0, table.shape[0] - 1, geometry)]
+    is_candidate = (leaves >= 0) & custom.leaf_flag(_candidate_table(structure), structure.leaf_geometry, leaves)
     kinds = q._kind(leaves)
     hits = triangle.watertight(
         q.sheared, ray.t_min, s.distance, structure.leaf_triangle[jnp.maximum(leaves, 0)], q.intersector._cull
