@@ -7,7 +7,7 @@
 #   peers   the GPU bench with --peers (Warp SAH and LBVH; Embree where embreex is installed) on the
 #           procedural scenes and on the real meshes carried in .meshes/, fast and high-quality trees
 #   tests   every test of tests/test_gpu.py (the Triton-interpreter one included)
-#   variants  kernel code-generation variants
+#   variants  GPU tests, then kernel variants (layouts, code generation) on the procedural scenes, bunny, Sponza
 # Logs and JSON go to $OUT (or /tmp/out).
 set -uo pipefail
 mode=${1:-check}
@@ -37,6 +37,8 @@ case $mode in
     timeout 400 python3 -m pytest tests/test_gpu.py -v -p no:cacheprovider -rs -s --durations=5 2>&1 | tee "$out/tests.log"
     ;;
   variants)
-    timeout 330 python3 -m jaxrt.bench.gpu --variants --quality fast --json "$out/bench_variants.json" 2>&1 | tee "$out/bench_variants.log"
+    timeout 150 python3 -m pytest tests/test_gpu.py -q -p no:cacheprovider -rs -k "not interpreter" 2>&1 | tee "$out/tests.log"
+    timeout 400 python3 -m jaxrt.bench.gpu --variants --quality fast --repeats 3 --portable-rays 262144 --meshes .meshes \
+      --scenes sphere,soup,bunny,sponza --json "$out/bench_variants.json" 2>&1 | tee "$out/bench_variants.log"
     ;;
 esac

@@ -25,6 +25,12 @@ from jaxrt._src.intersector import _resolve_backend
 from jaxrt._src.primitives import triangle
 from jaxrt._src.traversal import gpu, packed
 
+#: Kernel layouts the tests run: the binary nodes, and the 4-wide tree with leaf clusters of 4 and of 1.
+KERNEL_LAYOUTS = (
+    gpu.KernelOptions(node_width=2),
+    gpu.KernelOptions(node_width=4, leaf_size=4),
+    gpu.KernelOptions(node_width=4, leaf_size=1),
+)
 ON_GPU = jax.default_backend() == "gpu" and gpu._import_error() is None
 needs_gpu = pytest.mark.skipif(not ON_GPU, reason="needs a CUDA GPU with Triton and jax-triton")
 
@@ -83,6 +89,51 @@ def _assert_same(result, reference, *, distance_rtol: float = 0.0):
             np.testing.assert_array_equal(got, want, err_msg=name)
 
 
+def _assert_agree(result, reference, *, any_hit: bool, distance_rtol: float = 0.0):
+    """The 4-wide kernel's contract: the binary traversal's hits, up to the choice among ties.
+
+    Nearest hit: the same hit or miss and distance everywhere; where the primitive differs, the two are at
+    the same distance (a tie, e.g. a ray through a shared edge). Any hit: the same hit or miss; the hit
+    reported is a hit in the ray's interval. Traversal statistics differ (another tree) and are not compared.
+    """
+    hit = np.asarray(reference.type) != 0
+    np.testing.assert_array_equal(np.asarray(result.type), np.asarray(reference.type))
+    assert not np.asarray(result.stack_overflow).any()
+    distance, want = np.asarray(result.distance), np.asarray(reference.distance)
+    if any_hit:
+        assert np.isfinite(distance[hit]).all() and np.isinf(distance[~hit]).all()
+        return
+    np.testing.assert_allclose(distance, want, rtol=distance_rtol, atol=1e-7)
+    same = (np.asarray(result.primitive_id) == np.asarray(reference.primitive_id)) & (
+        np.asarray(result.geometry_id) == np.asarray(reference.geometry_id)
+    )
+    for name in ("triangle_barycentric_coord", "triangle_front_facing"):
+        if name in reference:
+            np.testing.assert_allclose(
+                np.asarray(result[name])[same], np.asarray(reference[name])[same], rtol=distance_rtol, atol=1e-6
+            )
+    print(f"\n{hit.sum()} hits, {(~same).sum()} ties resolved to another primitive")
+
+
+def _compare(result, reference, layout: gpu.KernelOptions, *, any_hit: bool = False, distance_rtol: float = 0.0):
+    """The kernel's result against the portable path's, by the contract of the kernel ``layout``."""
+    if layout.node_width == 2:
+        _assert_same(result, reference, distance_rtol=distance_rtol)
+    else:
+        _assert_agree(result, reference, any_hit=any_hit, distance_rtol=distance_rtol)
+
+
+@pytest.fixture(params=KERNEL_LAYOUTS, ids=lambda o: f"width{o.node_width}-leaf{o.leaf_size}")
+def layout(request, monkeypatch):
+    """Run a test with each kernel layout as the default (compiled traces are dropped around it)."""
+    monkeypatch.setattr(gpu, "DEFAULT_OPTIONS", request.param)
+    gpu._traversal.cache_clear()
+    jax.clear_caches()
+    yield request.param
+    gpu._traversal.cache_clear()
+    jax.clear_caches()
+
+
 # ---------------------------------------------------------------------------------------------- CPU tests
 
 
@@ -108,6 +159,61 @@ def test_pack_nodes_round_trip():
             -1,
         ),
     )
+
+
+def _walk_wide(rows: np.ndarray, capacity: int):
+    """Leaf counts and slot boxes reached from the root of packed 4-wide rows (empty slots skipped)."""
+    refs = rows[:, 24:28].view(np.int32)
+    seen = np.zeros(capacity, np.int64)
+    reached, todo, depth, clusters = set(), [(0, 1)], 0, []
+    while todo:
+        w, level = todo.pop()
+        assert w not in reached, "a wide node is referenced twice"
+        reached.add(w)
+        depth = max(depth, level)
+        for k in range(4):
+            lower = rows[w, [k, 8 + k, 16 + k]]
+            upper = rows[w, [4 + k, 12 + k, 20 + k]]
+            if not (lower <= upper).all():
+                continue
+            if refs[w, k] >= 0:
+                todo.append((int(refs[w, k]), level + 1))
+            else:
+                code = -1 - int(refs[w, k])
+                first, count = code >> 2, (code & 3) + 1
+                seen[first : first + count] += 1
+                clusters.append((first, count, lower, upper))
+    return seen, clusters, len(reached), depth
+
+
+@pytest.mark.parametrize("quality", ["fast", "high"])
+@pytest.mark.parametrize("leaf_size", [1, 2, 4])
+def test_pack_wide_nodes_covers_every_leaf_once(quality, leaf_size):
+    """The 4-wide collapse: every real leaf in exactly one cluster, clusters within their slot boxes, the
+    row count and depth within the bounds the kernel's buffers and stack are sized by."""
+    structure, _ = _scene()
+    rows = np.asarray(
+        packed.pack_wide_nodes(
+            structure.node_lower, structure.node_upper, structure.node_children, structure.node_range, leaf_size
+        )
+    )
+    assert rows.shape == (packed.wide_node_capacity(structure.capacity), packed.WIDE_NODE_WIDTH)
+    seen, clusters, reached, depth = _walk_wide(rows, structure.capacity)
+    real = np.asarray(structure.leaf_geometry) >= 0
+    np.testing.assert_array_equal(seen[real], 1)
+    triangles = np.asarray(structure.leaf_triangle)
+    for first, count, lower, upper in clusters:
+        assert 1 <= count <= leaf_size
+        inside = triangles[first : first + count][real[first : first + count]]
+        assert (inside.min(axis=1) >= lower).all() and (inside.max(axis=1) <= upper).all()
+    assert reached <= rows.shape[0]
+    assert 3 * depth <= packed.wide_stack_size(structure.max_depth)
+    if leaf_size > 1:
+        assert max(count for _, count, _, _ in clusters) > 1
+    with pytest.raises(ValueError, match="leaf_size"):
+        packed.pack_wide_nodes(
+            structure.node_lower, structure.node_upper, structure.node_children, structure.node_range, 5
+        )
 
 
 def test_pack_triangles_layout():
@@ -144,10 +250,10 @@ def test_unavailable_without_gpu():
 
 def _emulated_kernel(calls, *args, options, any_hit, cull, stack):
     """The kernel's contract computed by the portable traversal on the packed-then-unpacked nodes."""
-    node_lower, node_upper, node_children, leaf_triangle, origin = args[:5]
+    node_lower, node_upper, node_children, node_range, leaf_triangle, origin = args[:6]
     calls.append(origin.shape[0])
     nodes = packed.unpack_nodes(packed.pack_nodes(node_lower, node_upper, node_children))
-    return gpu._portable(*nodes, leaf_triangle, *args[4:], any_hit=any_hit, cull=cull, stack=stack)
+    return gpu._portable(*nodes, node_range, leaf_triangle, *args[5:], any_hit=any_hit, cull=cull, stack=stack)
 
 
 @pytest.fixture
@@ -267,15 +373,19 @@ def test_kernel_in_triton_interpreter(monkeypatch, fresh_caches):
         size = rays.shape[1]
         lanes = options.rays_per_program
         programs = max(1, min(size // lanes, 3))  # fewer programs than blocks: the strided loop runs
+        if options.node_width == 4:
+            kernel, stack, extra = module.trace_wide_kernel, packed.wide_stack_size(stack), {}
+        else:
+            kernel, extra = module.trace_kernel, dict(BRANCH=options.leaf_branch)
 
         def host(nodes, triangles, rays):
             outs = [np.zeros(size, np.float32)] + [np.zeros(size, np.int32) for _ in range(4)]
             scratch = np.zeros(programs * stack * lanes, np.int32)
             wrapped = [_HostArray(np.asarray(a)) for a in (nodes, triangles, rays, *outs, scratch)]
-            module.trace_kernel[(programs,)](
+            kernel[(programs,)](
                 *wrapped[:3], size, programs, *wrapped[3:],
                 STACK=stack, ANY_HIT=any_hit, CULL=cull, FAR_SCALE=float(np.float32(gpu.box.FAR_SCALE)), PARALLEL=float(np.float32(gpu.box.PARALLEL_RECIPROCAL)),
-                LANES=lanes, VECTOR=options.vector_loads, BRANCH=options.leaf_branch,
+                LANES=lanes, VECTOR=options.vector_loads, **extra,
             )  # fmt: skip
             return tuple(w.array for w in wrapped[3:8])
 
@@ -287,12 +397,18 @@ def test_kernel_in_triton_interpreter(monkeypatch, fresh_caches):
     structure, _ = _scene()
     rays = _rays(160)
     tags = (rt.tags.triangle_data, rt.tags.stats)
-    for options in (dict(), dict(accept_any_intersection=True, triangle_cull_mode="front")):
-        # The interpreter evaluates every float operation exactly rounded; XLA on the CPU may contract
-        # multiply-adds, so distances agree to rounding and leaves exactly (no ray here grazes an edge).
-        got = rt.Intersector(*tags, backend="gpu", **options).intersect(rays, structure)
-        want = rt.Intersector(*tags, backend="portable", **options).intersect(rays, structure)
-        _assert_same(got, want, distance_rtol=1e-6)
+    for kernel_options in KERNEL_LAYOUTS:
+        monkeypatch.setattr(gpu, "DEFAULT_OPTIONS", kernel_options)
+        gpu._traversal.cache_clear()
+        for options in (dict(), dict(accept_any_intersection=True, triangle_cull_mode="front")):
+            # The interpreter evaluates every float operation exactly rounded; XLA on the CPU may contract
+            # multiply-adds, so distances agree to rounding and leaves exactly (no ray here grazes an edge).
+            got = rt.Intersector(*tags, backend="gpu", **options).intersect(rays, structure)
+            want = rt.Intersector(*tags, backend="portable", **options).intersect(rays, structure)
+            if kernel_options.node_width == 2:
+                _assert_same(got, want, distance_rtol=1e-6)
+            else:
+                _assert_agree(got, want, any_hit="accept_any_intersection" in options, distance_rtol=1e-6)
 
 
 # ---------------------------------------------------------------------------------------------- GPU tests
@@ -318,7 +434,7 @@ def test_auto_picks_the_kernel():
         (True, "front", "counterclockwise"),
     ],
 )
-def test_kernel_equals_portable(any_hit, cull, winding):
+def test_kernel_equals_portable(any_hit, cull, winding, layout):
     structure, _ = _scene()
     rays = _rays(4096)
     tags = (rt.tags.triangle_data, rt.tags.stats)
@@ -326,7 +442,7 @@ def test_kernel_equals_portable(any_hit, cull, winding):
     got = rt.Intersector(*tags, backend="gpu", **options).intersect(rays, structure)
     want = rt.Intersector(*tags, backend="portable", **options).intersect(rays, structure)
     # XLA may contract multiply-adds in the portable path; the kernel does not: distances agree to rounding.
-    _assert_same(got, want, distance_rtol=1e-6)
+    _compare(got, want, layout, any_hit=any_hit, distance_rtol=1e-6)
     assert not np.asarray(got.stack_overflow).any()
     disabled = ~np.asarray(jnp.any(rays.direction != 0, -1) & (rays.min_distance <= rays.max_distance))
     assert (np.asarray(got.type)[disabled] == 0).all() and (np.asarray(got.nodes_visited)[disabled] == 0).all()
@@ -335,7 +451,7 @@ def test_kernel_equals_portable(any_hit, cull, winding):
 @pytest.mark.gpu
 @needs_gpu
 @pytest.mark.parametrize("any_hit", [False, True])
-def test_kernel_equals_portable_on_the_high_quality_tree(any_hit):
+def test_kernel_equals_portable_on_the_high_quality_tree(any_hit, layout):
     rng = np.random.default_rng(3)
     vertices, faces = _sphere()
     soup = (rng.uniform(-1.2, 1.2, (40, 1, 3)) + 0.25 * rng.standard_normal((40, 3, 3))).astype(np.float32)
@@ -345,12 +461,12 @@ def test_kernel_equals_portable_on_the_high_quality_tree(any_hit):
     tags = (rt.tags.triangle_data, rt.tags.stats)
     got = rt.Intersector(*tags, backend="gpu", accept_any_intersection=any_hit).intersect(rays, structure)
     want = rt.Intersector(*tags, backend="portable", accept_any_intersection=any_hit).intersect(rays, structure)
-    _assert_same(got, want, distance_rtol=1e-6)
+    _compare(got, want, layout, any_hit=any_hit, distance_rtol=1e-6)
 
 
 @pytest.mark.gpu
 @needs_gpu
-def test_watertight_far_from_origin():
+def test_watertight_far_from_origin(layout):
     """Rays from inside a closed ellipsoid far from the origin, aimed at its vertices and edge midpoints."""
     vertices, faces = icosphere(5)
     centre = np.array([148376.0, 1234.0, -223423.0])
@@ -379,7 +495,7 @@ def test_watertight_far_from_origin():
 
 @pytest.mark.gpu
 @needs_gpu
-def test_axis_parallel_rays_on_slab_planes():
+def test_axis_parallel_rays_on_slab_planes(layout):
     """Axis-parallel rays starting exactly on box faces and edges of a cube: no NaN, same answers."""
     lower, upper = -1.0, 1.0
     corners = np.array([[x, y, z] for x in (lower, upper) for y in (lower, upper) for z in (lower, upper)], np.float32)
@@ -418,12 +534,12 @@ def test_axis_parallel_rays_on_slab_planes():
     got = rt.Intersector(*tags, backend="gpu").intersect(rays, structure)
     want = rt.Intersector(*tags, backend="portable").intersect(rays, structure)
     assert not np.isnan(np.asarray(got.distance)).any()
-    _assert_same(got, want)
+    _compare(got, want, layout)
 
 
 @pytest.mark.gpu
 @needs_gpu
-def test_degenerate_triangles_never_hit():
+def test_degenerate_triangles_never_hit(layout):
     tri = np.array(
         [[[0, 0, 0], [1, 0, 0], [2, 0, 0]], [[0, 0, 0], [0, 0, 0], [0, 0, 0]], [[0, 1, 0], [0, 1, 0], [1, 1, 0]]],
         np.float32,
@@ -514,6 +630,6 @@ def test_large_batch_walks_blocks_with_a_stride(monkeypatch):
     rays = _rays(2048, seed=7)
     got = rt.Intersector(rt.tags.stats, backend="gpu").intersect(rays, structure)
     want = rt.Intersector(rt.tags.stats, backend="portable").intersect(rays, structure)
-    _assert_same(got, want, distance_rtol=1e-6)
+    _compare(got, want, gpu.DEFAULT_OPTIONS, distance_rtol=1e-6)
     gpu._traversal.cache_clear()
     jax.clear_caches()

@@ -65,11 +65,17 @@ QUALITIES = ("fast", "high")
 QUERIES = (("primary", False), ("diffuse", False), ("shadow", True))
 #: Kernel variants compared with ``--variants`` (the default options first).
 VARIANTS = {
-    "default": gpu.DEFAULT_OPTIONS,
-    "scalar-loads": dataclasses.replace(gpu.DEFAULT_OPTIONS, vector_loads=not gpu.DEFAULT_OPTIONS.vector_loads),
-    "leaf-branch": dataclasses.replace(gpu.DEFAULT_OPTIONS, leaf_branch=not gpu.DEFAULT_OPTIONS.leaf_branch),
-    "fp-fusion": dataclasses.replace(gpu.DEFAULT_OPTIONS, fp_fusion=not gpu.DEFAULT_OPTIONS.fp_fusion),
-    "64-rays": dataclasses.replace(gpu.DEFAULT_OPTIONS, rays_per_program=64),
+    label: options
+    for label, options in {
+        "default": gpu.DEFAULT_OPTIONS,
+        "scalar-loads": dataclasses.replace(gpu.DEFAULT_OPTIONS, vector_loads=not gpu.DEFAULT_OPTIONS.vector_loads),
+        "64-rays": dataclasses.replace(gpu.DEFAULT_OPTIONS, rays_per_program=64),
+        "binary": dataclasses.replace(gpu.DEFAULT_OPTIONS, node_width=2),
+        "wide-leaf-4": dataclasses.replace(gpu.DEFAULT_OPTIONS, node_width=4, leaf_size=4),
+        "wide-leaf-2": dataclasses.replace(gpu.DEFAULT_OPTIONS, node_width=4, leaf_size=2),
+        "wide-leaf-1": dataclasses.replace(gpu.DEFAULT_OPTIONS, node_width=4, leaf_size=1),
+    }.items()
+    if label == "default" or options != gpu.DEFAULT_OPTIONS
 }
 
 
@@ -192,7 +198,9 @@ def _bench_kernel(structure, rays: dict[str, jax.Array], any_hit: bool, options:
     """Kernel-only timing on pre-packed arrays; returns (seconds, pipelined seconds, leaf array)."""
     n = rays["origin"].shape[0]
     size = -(-n // options.rays_per_program) * options.rays_per_program
-    nodes = packed.pack_nodes(structure.node_lower, structure.node_upper, structure.node_children)
+    nodes = gpu.pack_nodes(
+        options, structure.node_lower, structure.node_upper, structure.node_children, structure.node_range
+    )
     triangles = packed.pack_triangles(structure.leaf_triangle)
     block = packed.pack_rays(rays["origin"], rays["direction"], rays["t_min"], rays["t_max"], rays["enabled"], size)
     launch = jax.jit(

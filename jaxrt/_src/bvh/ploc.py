@@ -33,7 +33,7 @@ from jax import lax
 
 from jaxrt._src.bvh.radix_tree import build_radix_tree
 
-__all__ = ["RADIUS", "cluster_tree", "restructure"]
+__all__ = ["RADIUS", "cluster_tree", "restructure", "path_sums"]
 
 #: Neighbours searched on each side of a cluster (Meister & Bittner's ``r``).
 RADIUS = 16
@@ -145,7 +145,7 @@ def cluster_tree(lower: jax.Array, upper: jax.Array, radius: int = RADIUS) -> tu
     return state[6], state[7]
 
 
-def _path_sums(parent: jax.Array, *values: jax.Array) -> tuple[jax.Array, ...]:
+def path_sums(parent: jax.Array, *values: jax.Array) -> tuple[jax.Array, ...]:
     """For every node, the sum of each of ``values`` over the node and all its ancestors (pointer jumping)."""
 
     def body(state):
@@ -184,7 +184,7 @@ def _depth_first_layout(children: jax.Array, subtree: jax.Array, offset: int):
     shift = jnp.where(side == 1, left_leaves[jnp.maximum(parent, 0)], 0)
     root = parent < 0
     preorder_step = jnp.where(root, 0, jnp.where(side == 1, shift, 1))
-    preorder, first, depth = _path_sums(parent, preorder_step, jnp.where(root, 0, shift), jnp.ones((m,), jnp.int32))
+    preorder, first, depth = path_sums(parent, preorder_step, jnp.where(root, 0, shift), jnp.ones((m,), jnp.int32))
     leaf_position = first[leaf_parent] + jnp.where(leaf_side == 1, left_leaves[leaf_parent], 0)
     renamed = jnp.where(internal, preorder[jnp.maximum(children, 0)] + offset, -1 - leaf_position[-1 - children])
     out_children = jnp.zeros((m, 2), jnp.int32).at[preorder].set(renamed)

@@ -41,6 +41,8 @@ COVERED_TAGS = frozenset({"triangle_data", "stats", "primitive_data"})
 #: Most programs per launch; larger batches are walked with a stride, which bounds the stack scratch buffer
 #: to ``MAX_PROGRAMS * rays_per_program * stack depth`` int32 (about 230 MB for a 2**24-leaf structure).
 MAX_PROGRAMS = 1 << 15
+#: Leading arguments of the kernel call that come from the structure (the rest are rays).
+STRUCTURE_ARGS = 5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,6 +56,11 @@ class KernelOptions:
       leaf_branch: skip a leaf test that no ray of the warp needs, with a warp-uniform branch.
       fp_fusion: let the compiler contract multiply-adds into FMAs. Off by default: with contraction an edge
         function can take the wrong sign where its two products nearly cancel (see the kernel module).
+      node_width: 2 traces the structure's binary nodes (step for step the portable traversal's decisions);
+        4 traces a 4-wide tree with leaf clusters, collapsed from them on every call
+        (:func:`~jaxrt._src.traversal.packed.pack_wide_nodes`): the same nearest distances, but the choice
+        among equally distant triangles and the first hit of an any-hit query may differ.
+      leaf_size: most leaves in one leaf cluster of the 4-wide tree (1-4).
 
     The defaults were the fastest on an H200 (``python -m jaxrt.bench.gpu --variants``).
     """
@@ -62,6 +69,14 @@ class KernelOptions:
     vector_loads: bool = True
     leaf_branch: bool = True
     fp_fusion: bool = False
+    node_width: int = 2
+    leaf_size: int = 4
+
+    def __post_init__(self):
+        if self.node_width not in (2, 4):
+            raise ValueError(f"KernelOptions: node_width must be 2 or 4, got {self.node_width}")
+        if not 1 <= self.leaf_size <= packed.MAX_LEAF_SIZE:
+            raise ValueError(f"KernelOptions: leaf_size must be in 1..{packed.MAX_LEAF_SIZE}, got {self.leaf_size}")
 
 
 DEFAULT_OPTIONS = KernelOptions()
@@ -110,6 +125,12 @@ def _launch(
     size = rays.shape[1]
     lanes = options.rays_per_program
     programs = max(1, min(size // lanes, MAX_PROGRAMS))
+    wide = options.node_width == 4
+    if wide:
+        stack = packed.wide_stack_size(stack)
+        kernel, extra = triton_kernel.trace_wide_kernel, {}
+    else:
+        kernel, extra = triton_kernel.trace_kernel, dict(BRANCH=options.leaf_branch)
     out_shape = [
         jax.ShapeDtypeStruct((size,), jnp.float32),
         jax.ShapeDtypeStruct((size,), jnp.int32),
@@ -124,7 +145,7 @@ def _launch(
         rays,
         size,
         programs,
-        kernel=triton_kernel.trace_kernel,
+        kernel=kernel,
         out_shape=out_shape,
         grid=(programs,),
         num_warps=1,
@@ -137,19 +158,38 @@ def _launch(
         PARALLEL=float(np.float32(box.PARALLEL_RECIPROCAL)),
         LANES=lanes,
         VECTOR=options.vector_loads,
-        BRANCH=options.leaf_branch,
+        **extra,
     )
     return tuple(out[:5])
 
 
+def pack_nodes(options: KernelOptions, node_lower, node_upper, node_children, node_range) -> jax.Array:
+    """The node rows the kernel of ``options`` reads (binary or 4-wide)."""
+    if options.node_width == 4:
+        return packed.pack_wide_nodes(node_lower, node_upper, node_children, node_range, options.leaf_size)
+    return packed.pack_nodes(node_lower, node_upper, node_children)
+
+
 def _kernel(
-    node_lower, node_upper, node_children, leaf_triangle, origin, direction, t_min, t_max, enabled, *, options, **config
+    node_lower,
+    node_upper,
+    node_children,
+    node_range,
+    leaf_triangle,
+    origin,
+    direction,
+    t_min,
+    t_max,
+    enabled,
+    *,
+    options,
+    **config,
 ):
     """Pack the structure and the rays, launch the kernel, and drop the padding rays."""
     n = origin.shape[0]
     lanes = options.rays_per_program
     size = max(lanes, -(-n // lanes) * lanes)
-    nodes = packed.pack_nodes(node_lower, node_upper, node_children)
+    nodes = pack_nodes(options, node_lower, node_upper, node_children, node_range)
     triangles = packed.pack_triangles(leaf_triangle)
     rays = packed.pack_rays(origin, direction, t_min, t_max, enabled, size)
     out = _launch(nodes, triangles, rays, options=options, **config)
@@ -160,6 +200,7 @@ def _portable(
     node_lower,
     node_upper,
     node_children,
+    node_range,
     leaf_triangle,
     origin,
     direction,
@@ -197,14 +238,14 @@ def _traversal(any_hit: bool, cull: int, stack: int, options: KernelOptions):
 
     @call.def_vmap
     def rule(axis_size, in_batched, *args):
-        if any(in_batched[:4]):
+        if any(in_batched[:STRUCTURE_ARGS]):
             in_axes = [0 if b else None for b in in_batched]
             fn = functools.partial(_portable, **config)
             return jax.vmap(fn, in_axes=in_axes, axis_size=axis_size)(*args), (True,) * 5
-        structure_args, ray_args = args[:4], args[4:]
+        structure_args, ray_args = args[:STRUCTURE_ARGS], args[STRUCTURE_ARGS:]
         rays = [
             a if b else jnp.broadcast_to(a, (axis_size, *a.shape))
-            for a, b in zip(ray_args, in_batched[4:], strict=True)
+            for a, b in zip(ray_args, in_batched[STRUCTURE_ARGS:], strict=True)
         ]
         n = rays[0].shape[1]
         out = call(*structure_args, *(a.reshape(axis_size * n, *a.shape[2:]) for a in rays))
@@ -223,7 +264,7 @@ def trace(
     *,
     any_hit: bool,
     cull: int,
-    options: KernelOptions = DEFAULT_OPTIONS,
+    options: KernelOptions | None = None,
 ) -> TraversalResult:
     """Trace rays with the GPU kernel.
 
@@ -234,7 +275,7 @@ def trace(
       enabled: ``(N,)`` bool; disabled rays miss and take no step.
       any_hit: stop at the first accepted hit.
       cull: 0 culls nothing, +1 clockwise triangles, -1 counterclockwise ones.
-      options: code-generation choices (static).
+      options: code-generation choices (static); ``None`` takes :data:`DEFAULT_OPTIONS` at call time.
 
     Returns:
       A :class:`~jaxrt._src.traversal.stack.TraversalResult` equal to the portable traversal's: the leaf
@@ -244,11 +285,12 @@ def trace(
     kinds = sorted({g.kind for g in structure.geometry_info} - {"triangle"})
     if kinds:
         raise NotImplementedError(f"traversal.gpu.trace: geometry kinds {kinds} are not covered by the GPU kernel")
-    call = _traversal(bool(any_hit), int(cull), int(structure.max_depth), options)
+    call = _traversal(bool(any_hit), int(cull), int(structure.max_depth), options or DEFAULT_OPTIONS)
     args = (
         structure.node_lower,
         structure.node_upper,
         structure.node_children,
+        structure.node_range,
         structure.leaf_triangle,
         origin,
         direction,

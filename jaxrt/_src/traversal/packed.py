@@ -17,6 +17,20 @@ columns  contents
 14-15    zero
 =======  ==========================================================
 
+Wide node row, ``(W, 32)`` float32, for the 4-wide kernel (:func:`pack_wide_nodes`): four child slots, each a
+box and a reference, so that one 128-byte row gives the four boxes a step tests:
+
+=======  ==========================================================
+columns  contents
+=======  ==========================================================
+0-3      ``lower.x`` of slots 0-3
+4-7      ``upper.x`` of slots 0-3
+8-23     the same for y (8-15) and z (16-23)
+24-27    slot references (int32 bits): wide node ``w >= 0``, or a leaf cluster ``-1 - (4 first + count - 1)``
+         holding leaves ``first .. first + count - 1`` (at most 4); an unused slot has an empty box
+28-31    zero
+=======  ==========================================================
+
 Triangle row, ``(C, 12)`` float32, one per leaf: ``v0.x, v1.x, v2.x, 0, v0.y, v1.y, v2.y, 0, v0.z, v1.z,
 v2.z, 0``.
 
@@ -32,12 +46,28 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from jaxrt._src.bvh.ploc import path_sums
 from jaxrt._src.numerics import safe_reciprocal
 from jaxrt._src.primitives import triangle
 
-__all__ = ["NODE_WIDTH", "TRIANGLE_WIDTH", "RAY_ROWS", "pack_nodes", "unpack_nodes", "pack_triangles", "pack_rays"]
+__all__ = [
+    "NODE_WIDTH",
+    "WIDE_NODE_WIDTH",
+    "TRIANGLE_WIDTH",
+    "RAY_ROWS",
+    "pack_nodes",
+    "unpack_nodes",
+    "pack_wide_nodes",
+    "wide_node_capacity",
+    "wide_stack_size",
+    "pack_triangles",
+    "pack_rays",
+]
 
 NODE_WIDTH = 16
+WIDE_NODE_WIDTH = 32
+#: Most leaves in one leaf cluster of the wide layout (the count is stored in two bits).
+MAX_LEAF_SIZE = 4
 TRIANGLE_WIDTH = 12
 RAY_ROWS = 16
 
@@ -62,6 +92,87 @@ def unpack_nodes(packed: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
     upper = jnp.stack([boxes[:, :, 1], boxes[:, :, 3]], axis=1)
     children = lax.bitcast_convert_type(packed[:, 12:14], jnp.int32)
     return lower, upper, children
+
+
+def wide_node_capacity(capacity: int) -> int:
+    """Rows of :func:`pack_wide_nodes` for a structure of ``capacity`` leaves.
+
+    A wide node other than the root hangs below an opened binary node, which has at most two wide children,
+    and the two kinds are disjoint sets of internal nodes, so ``W <= 1 + 2 (C - 1 - W)``: ``W <= (2C - 1) / 3``.
+    """
+    return max(1, (2 * capacity - 1) // 3 + 1)
+
+
+def wide_stack_size(max_depth: int) -> int:
+    """Stack entries the 4-wide traversal can need: three pushes per wide level, one wide level per two
+    binary levels of a tree at most ``max_depth`` deep."""
+    return 3 * ((max_depth + 1) // 2)
+
+
+def pack_wide_nodes(
+    node_lower: jax.Array,
+    node_upper: jax.Array,
+    node_children: jax.Array,
+    node_range: jax.Array,
+    leaf_size: int = MAX_LEAF_SIZE,
+) -> jax.Array:
+    """The ``(W, 32)`` float32 rows of a 4-wide tree collapsed from the binary tree (layout in the docstring).
+
+    Every binary node whose subtree holds at most ``leaf_size`` leaves (other than the root) becomes a leaf
+    cluster, a contiguous leaf range (every node covers one, see :mod:`jaxrt._src.structures`). The remaining
+    nodes at even depth (the root's is 0) become the wide nodes; each takes its children's slots, opening every
+    child that is neither a leaf nor a cluster into that child's two children (the collapse of Wald et al.,
+    "Getting Rid of Packets", RT 2008, one level at a time). Wide nodes keep the binary nodes' relative order.
+    """
+    if not 1 <= leaf_size <= MAX_LEAF_SIZE:
+        raise ValueError(f"pack_wide_nodes: leaf_size must be in 1..{MAX_LEAF_SIZE}, got {leaf_size}")
+    m = node_children.shape[0]
+    rows = wide_node_capacity(m + 1)
+    children = node_children.astype(jnp.int32)
+    node = jnp.arange(m, dtype=jnp.int32)
+    internal = children >= 0
+    safe = jnp.maximum(children, 0)
+    parent = (
+        jnp.full((m,), -1, jnp.int32)
+        .at[jnp.where(internal, children, m)]
+        .set(jnp.broadcast_to(node[:, None], (m, 2)), mode="drop")
+    )
+    (levels,) = path_sums(parent, jnp.ones((m,), jnp.int32))  # depth + 1
+    size = node_range[:, 1] - node_range[:, 0] + 1
+    small = (size <= leaf_size) & (node > 0)
+    wide = (levels % 2 == 1) & ~small
+    wide_index = jnp.cumsum(wide.astype(jnp.int32)) - 1
+
+    def reference(code: jax.Array) -> jax.Array:
+        """A child code of the binary tree as a slot reference of the wide tree."""
+        c = jnp.maximum(code, 0)
+        cluster = -1 - (node_range[c, 0] * 4 + size[c] - 1)
+        leaf = -1 - (-1 - code) * 4
+        return jnp.where(code < 0, leaf, jnp.where(small[c], cluster, wide_index[c]))
+
+    opened = internal & ~small[safe]  # (m, 2): the child's own children take its two slots
+    grand = children[safe]  # (m, 2, 2)
+    lower = node_lower.astype(jnp.float32)
+    upper = node_upper.astype(jnp.float32)
+    empty_lower = jnp.full((m, 3), jnp.inf, jnp.float32)
+    empty_upper = jnp.full((m, 3), -jnp.inf, jnp.float32)
+    slot_lower, slot_upper, slot_ref = [], [], []
+    for k in range(2):
+        o = opened[:, k]
+        for j in range(2):
+            own_lower = lower[:, k] if j == 0 else empty_lower
+            own_upper = upper[:, k] if j == 0 else empty_upper
+            own_ref = reference(children[:, k]) if j == 0 else jnp.zeros((m,), jnp.int32)
+            slot_lower.append(jnp.where(o[:, None], lower[safe[:, k], j], own_lower))
+            slot_upper.append(jnp.where(o[:, None], upper[safe[:, k], j], own_upper))
+            slot_ref.append(jnp.where(o, reference(grand[:, k, j]), own_ref))
+    slot_lower = jnp.stack(slot_lower, axis=-1)  # (m, axis, slot)
+    slot_upper = jnp.stack(slot_upper, axis=-1)
+    boxes = jnp.stack([slot_lower, slot_upper], axis=2).reshape(m, 24)  # per axis: lower x4, upper x4
+    refs = lax.bitcast_convert_type(jnp.stack(slot_ref, axis=-1), jnp.float32)
+    packed_rows = jnp.concatenate([boxes, refs, jnp.zeros((m, 4), jnp.float32)], axis=-1)
+    target = jnp.where(wide, wide_index, rows)
+    return jnp.zeros((rows, WIDE_NODE_WIDTH), jnp.float32).at[target].set(packed_rows, mode="drop")
 
 
 def pack_triangles(leaf_triangle: jax.Array) -> jax.Array:

@@ -381,3 +381,222 @@ def trace_kernel(
 def compiled_options() -> dict:
     """Launch options used for the kernel: one warp per program, no floating-point contraction."""
     return dict(num_warps=1, num_stages=1, enable_fp_fusion=False)
+
+
+@triton.jit
+def _order(key_a, ref_a, key_b, ref_b):
+    """Compare-exchange of two ``(key, reference)`` pairs: the smaller key first (``a`` on ties)."""
+    swap = key_b < key_a
+    return (
+        tl.where(swap, key_b, key_a),
+        tl.where(swap, ref_b, ref_a),
+        tl.where(swap, key_a, key_b),
+        tl.where(swap, ref_a, ref_b),
+    )
+
+
+@triton.jit
+def _push(stack_base, depth, overflow, entry, STACK: tl.constexpr, LANES: tl.constexpr):
+    """Push ``entry`` where it is a node (``>= 0``); a push past ``STACK`` entries is flagged and dropped."""
+    want = entry >= 0
+    push = want & (depth < STACK)
+    tl.store(stack_base + depth * LANES, entry, mask=push)
+    return depth + push.to(tl.int32), overflow | (want & (depth >= STACK)).to(tl.int32)
+
+
+@triton.jit
+def _leaf_cluster(
+    tris_ptr,
+    ref,
+    test,
+    longest,
+    distance,
+    leaf,
+    tested,
+    kx,
+    ky,
+    kz,
+    okx,
+    oky,
+    okz,
+    sx,
+    sy,
+    sz,
+    t_min,
+    CULL: tl.constexpr,
+    LANES: tl.constexpr,
+    VECTOR: tl.constexpr,
+):
+    """Test the triangles of one leaf-cluster slot (``longest``: the warp's largest cluster in it), nearest kept."""
+    code = -1 - ref
+    first = code >> 2
+    count = (code & 3) + 1
+    for j in range(longest):
+        mask = test & (j < count)
+        hit, t = _triangle(
+            tris_ptr, first + j, mask, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, CULL, LANES, VECTOR
+        )
+        # Strictly nearer than the current hit; the first hit may lie exactly at t_max (closed interval).
+        found = hit & ((t < distance) | ((leaf < 0) & (t <= distance)))
+        distance = tl.where(found, t, distance)
+        leaf = tl.where(found, first + j, leaf)
+        tested = tested + mask.to(tl.int32)
+    return distance, leaf, tested
+
+
+@triton.jit
+def _longest(votes, slot: tl.constexpr):
+    """The largest leaf-cluster size any lane tests in ``slot`` (its vote nibble has bit ``size - 1`` set)."""
+    nibble = (votes >> (4 * slot)) & 15
+    return (nibble > 0).to(tl.int32) + (nibble > 1).to(tl.int32) + (nibble > 3).to(tl.int32) + (nibble > 7).to(tl.int32)
+
+
+@triton.jit
+def trace_wide_kernel(
+    nodes_ptr,
+    tris_ptr,
+    rays_ptr,
+    n_rays,
+    n_programs,
+    distance_ptr,
+    leaf_ptr,
+    visited_ptr,
+    tested_ptr,
+    overflow_ptr,
+    stack_ptr,
+    STACK: tl.constexpr,
+    ANY_HIT: tl.constexpr,
+    CULL: tl.constexpr,
+    FAR_SCALE: tl.constexpr,
+    PARALLEL: tl.constexpr,
+    LANES: tl.constexpr,
+    VECTOR: tl.constexpr,
+):
+    """:func:`trace_kernel` over the 4-wide rows of :func:`~jaxrt._src.traversal.packed.pack_wide_nodes`.
+
+    A step tests the four slot boxes of one wide node, the triangles of every leaf cluster hit (in slot order,
+    each kept if strictly nearer), and enters the nearest inner slot hit, pushing the others farthest first.
+    The tests are those of :func:`trace_kernel`, so the nearest distance is the same; among triangles at
+    exactly that distance, and for the first hit in any-hit mode, the visiting order (and so the choice) may
+    differ from the binary traversal's.
+    """
+    pid = tl.program_id(0)
+    lane = tl.arange(0, LANES)
+    stack_base = stack_ptr + pid * (STACK * LANES) + lane
+    block = pid
+    while block < n_rays // LANES:
+        ray = block * LANES + lane
+        ox = tl.load(rays_ptr + ray)
+        oy = tl.load(rays_ptr + n_rays + ray)
+        oz = tl.load(rays_ptr + 2 * n_rays + ray)
+        ix = tl.load(rays_ptr + 3 * n_rays + ray)
+        iy = tl.load(rays_ptr + 4 * n_rays + ray)
+        iz = tl.load(rays_ptr + 5 * n_rays + ray)
+        sx = tl.load(rays_ptr + 6 * n_rays + ray)
+        sy = tl.load(rays_ptr + 7 * n_rays + ray)
+        sz = tl.load(rays_ptr + 8 * n_rays + ray)
+        t_min = tl.load(rays_ptr + 9 * n_rays + ray)
+        bound = tl.load(rays_ptr + 10 * n_rays + ray)
+        kx = tl.load(rays_ptr + 11 * n_rays + ray).to(tl.int32)
+        ky = tl.load(rays_ptr + 12 * n_rays + ray).to(tl.int32)
+        kz = tl.load(rays_ptr + 13 * n_rays + ray).to(tl.int32)
+        enabled = tl.load(rays_ptr + 14 * n_rays + ray) != 0
+        okx = _select(kx, ox, oy, oz)
+        oky = _select(ky, ox, oy, oz)
+        okz = _select(kz, ox, oy, oz)
+
+        distance = tl.where(enabled, bound, float("-inf"))
+        node = tl.zeros((LANES,), tl.int32)
+        depth = tl.zeros((LANES,), tl.int32)
+        leaf = tl.full((LANES,), -1, tl.int32)
+        done = tl.where(enabled, 0, 1)
+        visited = tl.zeros((LANES,), tl.int32)
+        tested = tl.zeros((LANES,), tl.int32)
+        overflow = tl.zeros((LANES,), tl.int32)
+        go = tl.max(1 - done, axis=0)
+        while go > 0:
+            active = done == 0
+            lo_x0, lo_x1, lo_x2, lo_x3 = _quad(nodes_ptr, node, 32, 0, active, LANES, VECTOR)
+            hi_x0, hi_x1, hi_x2, hi_x3 = _quad(nodes_ptr, node, 32, 4, active, LANES, VECTOR)
+            lo_y0, lo_y1, lo_y2, lo_y3 = _quad(nodes_ptr, node, 32, 8, active, LANES, VECTOR)
+            hi_y0, hi_y1, hi_y2, hi_y3 = _quad(nodes_ptr, node, 32, 12, active, LANES, VECTOR)
+            lo_z0, lo_z1, lo_z2, lo_z3 = _quad(nodes_ptr, node, 32, 16, active, LANES, VECTOR)
+            hi_z0, hi_z1, hi_z2, hi_z3 = _quad(nodes_ptr, node, 32, 20, active, LANES, VECTOR)
+            r0f, r1f, r2f, r3f = _quad(nodes_ptr, node, 32, 24, active, LANES, VECTOR)
+            r0 = r0f.to(tl.int32, bitcast=True)
+            r1 = r1f.to(tl.int32, bitcast=True)
+            r2 = r2f.to(tl.int32, bitcast=True)
+            r3 = r3f.to(tl.int32, bitcast=True)
+            h0, n0 = _slab(lo_x0, hi_x0, lo_y0, hi_y0, lo_z0, hi_z0, ox, oy, oz, ix, iy, iz, t_min, distance, FAR_SCALE, PARALLEL)  # fmt: skip
+            h1, n1 = _slab(lo_x1, hi_x1, lo_y1, hi_y1, lo_z1, hi_z1, ox, oy, oz, ix, iy, iz, t_min, distance, FAR_SCALE, PARALLEL)  # fmt: skip
+            h2, n2 = _slab(lo_x2, hi_x2, lo_y2, hi_y2, lo_z2, hi_z2, ox, oy, oz, ix, iy, iz, t_min, distance, FAR_SCALE, PARALLEL)  # fmt: skip
+            h3, n3 = _slab(lo_x3, hi_x3, lo_y3, hi_y3, lo_z3, hi_z3, ox, oy, oz, ix, iy, iz, t_min, distance, FAR_SCALE, PARALLEL)  # fmt: skip
+            h0 = h0 & active
+            h1 = h1 & active
+            h2 = h2 & active
+            h3 = h3 & active
+            test0 = h0 & (r0 < 0)
+            test1 = h1 & (r1 < 0)
+            test2 = h2 & (r2 < 0)
+            test3 = h3 & (r3 < 0)
+            # One warp reduction per step: bit 4 s + size - 1, some lane tests a cluster of that size in slot s;
+            # bit 16, some lane was active when the step began.
+            bit0 = ((-1 - r0) & 3) + 0
+            bit1 = ((-1 - r1) & 3) + 4
+            bit2 = ((-1 - r2) & 3) + 8
+            bit3 = ((-1 - r3) & 3) + 12
+            lane_votes = (
+                (test0.to(tl.int32) << bit0)
+                | (test1.to(tl.int32) << bit1)
+                | (test2.to(tl.int32) << bit2)
+                | (test3.to(tl.int32) << bit3)
+                | (active.to(tl.int32) << 16)
+            )
+            votes = tl.reduce(lane_votes, 0, _bit_or)
+            go = votes & (1 << 16)
+            # Leaves are tested on sight, against the distance found so far.
+            distance, leaf, tested = _leaf_cluster(tris_ptr, r0, test0, _longest(votes, 0), distance, leaf, tested, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, CULL, LANES, VECTOR)  # fmt: skip
+            distance, leaf, tested = _leaf_cluster(tris_ptr, r1, test1, _longest(votes, 1), distance, leaf, tested, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, CULL, LANES, VECTOR)  # fmt: skip
+            distance, leaf, tested = _leaf_cluster(tris_ptr, r2, test2, _longest(votes, 2), distance, leaf, tested, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, CULL, LANES, VECTOR)  # fmt: skip
+            distance, leaf, tested = _leaf_cluster(tris_ptr, r3, test3, _longest(votes, 3), distance, leaf, tested, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, CULL, LANES, VECTOR)  # fmt: skip
+
+            # Inner slots hit, nearest first (a 4-input sorting network; misses sort last with key inf).
+            inner0 = h0 & (r0 >= 0)
+            inner1 = h1 & (r1 >= 0)
+            inner2 = h2 & (r2 >= 0)
+            inner3 = h3 & (r3 >= 0)
+            big = 3.4028234663852886e38
+            k0 = tl.where(inner0, tl.minimum(n0, big), float("inf"))
+            k1 = tl.where(inner1, tl.minimum(n1, big), float("inf"))
+            k2 = tl.where(inner2, tl.minimum(n2, big), float("inf"))
+            k3 = tl.where(inner3, tl.minimum(n3, big), float("inf"))
+            a0 = tl.where(inner0, r0, -1)
+            a1 = tl.where(inner1, r1, -1)
+            a2 = tl.where(inner2, r2, -1)
+            a3 = tl.where(inner3, r3, -1)
+            k0, a0, k1, a1 = _order(k0, a0, k1, a1)
+            k2, a2, k3, a3 = _order(k2, a2, k3, a3)
+            k0, a0, k2, a2 = _order(k0, a0, k2, a2)
+            k1, a1, k3, a3 = _order(k1, a1, k3, a3)
+            k1, a1, k2, a2 = _order(k1, a1, k2, a2)
+            # Push the others farthest first, so that the nearest of them is popped first.
+            depth, overflow = _push(stack_base, depth, overflow, a3, STACK, LANES)
+            depth, overflow = _push(stack_base, depth, overflow, a2, STACK, LANES)
+            depth, overflow = _push(stack_base, depth, overflow, a1, STACK, LANES)
+            pop = active & (a0 < 0)
+            nonempty = depth > 0
+            top = tl.load(stack_base + (depth - 1) * LANES, mask=pop & nonempty, other=0)
+            node = tl.where(active, tl.where(pop, top, a0), node)
+            depth = tl.where(pop & nonempty, depth - 1, depth)
+            finished = pop & (nonempty == 0)
+            if ANY_HIT:
+                finished = finished | (active & (leaf >= 0))
+            done = tl.where(finished, 1, done)
+            visited = visited + active.to(tl.int32)
+
+        tl.store(distance_ptr + ray, distance)
+        tl.store(leaf_ptr + ray, leaf)
+        tl.store(visited_ptr + ray, visited)
+        tl.store(tested_ptr + ray, tested)
+        tl.store(overflow_ptr + ray, overflow)
+        block += n_programs
