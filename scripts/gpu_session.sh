@@ -3,7 +3,8 @@
 # wheels in .whl/ (jax-triton; trimesh for the real meshes) and, for "peers", the parts of NVIDIA Warp packed by
 # warp-for-device.sh. The Warp library is larger than one transfer, so it goes over in two calls: a first call
 # that carries .peers/warp.so.xz.part00 keeps it in /root/parts; the "peers" call carries the other parts.
-#   check   GPU tests (kernel, build quality, chunking), a 100M-ray intersect call, 10M-triangle builds
+#   check   GPU tests (kernel, build quality, chunking), the build's stage timings, a 100M-ray intersect call,
+#           10M-triangle builds
 #   peers   the GPU bench with --peers (Warp SAH and LBVH; Embree where embreex is installed) on the
 #           procedural scenes and on the real meshes carried in .meshes/, fast and high-quality trees
 #   tests   every test of tests/test_gpu.py (the Triton-interpreter one included)
@@ -22,6 +23,7 @@ case $mode in
   check)
     timeout 200 python3 -m pytest tests/test_gpu.py tests/test_bvh_quality.py tests/test_sharding.py -q \
       -p no:cacheprovider -rs -k "not interpreter" 2>&1 | tee "$out/tests.log"
+    timeout 200 python3 scripts/build_profile.py 2>&1 | tee "$out/build_profile.log"
     timeout 200 python3 -m jaxrt.bench.gpu --scenes "" --build-sizes 10000000 --repeats 5 --huge-rays 100000001 \
       --json "$out/bench_check.json" 2>&1 | tee "$out/bench_check.log"
     ;;

@@ -392,10 +392,12 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
 def assert_valid_tree(structure, triangles, counts) -> int:
     """Check a primitive structure against its node-layout contract; returns the deepest leaf's depth.
 
-    Every leaf (real or padding) is reachable from the root exactly once, every internal node once; children
-    split their parent's ``node_range`` into two contiguous halves; each child box is exactly the union of the
-    boxes of the triangles under it (padding boxes are empty); every primitive of every geometry sits in one
-    leaf with its own vertices; the depth is within ``structure.max_depth``.
+    Every real leaf is reachable from the root exactly once, every padding leaf and every internal node at
+    most once (the LBVH links only the real leaves, at least two; the clustering tree also the padding), and
+    the root covers every reachable leaf; rows no node references are empty; children split their parent's
+    ``node_range`` into two contiguous halves; each child box is exactly the union of the boxes of the
+    triangles under it (padding boxes are empty); every primitive of every geometry sits in one leaf with its
+    own vertices; the depth is within ``structure.max_depth``.
     """
     children = np.asarray(structure.node_children)
     node_range = np.asarray(structure.node_range)
@@ -423,7 +425,8 @@ def assert_valid_tree(structure, triangles, counts) -> int:
     leaf_lo = np.where(enterable[:, None], leaf_triangle.min(axis=1), np.inf)
     leaf_hi = np.where(enterable[:, None], leaf_triangle.max(axis=1), -np.inf)
 
-    assert tuple(node_range[0]) == (0, capacity - 1), node_range[0]
+    linked = capacity if node_range[0, 1] == capacity - 1 else max(total, 2)
+    assert tuple(node_range[0]) == (0, linked - 1), node_range[0]
     leaf_seen = np.zeros(capacity, np.int64)
     node_seen = np.zeros(capacity - 1, np.int64)
     deepest = 0
@@ -449,8 +452,11 @@ def assert_valid_tree(structure, triangles, counts) -> int:
             np.testing.assert_array_equal(lower[node, side], leaf_lo[a : b + 1].min(axis=0), err_msg=f"node {node}")
             np.testing.assert_array_equal(upper[node, side], leaf_hi[a : b + 1].max(axis=0), err_msg=f"node {node}")
         assert spans[0][0] == first and spans[0][1] + 1 == spans[1][0] and spans[1][1] == last, (node, spans)
-    np.testing.assert_array_equal(leaf_seen, 1, err_msg="every leaf is reachable exactly once")
-    np.testing.assert_array_equal(node_seen, 1, err_msg="every internal node is reachable exactly once")
+    np.testing.assert_array_equal(leaf_seen[:linked], 1, err_msg="every linked leaf is reachable exactly once")
+    np.testing.assert_array_equal(leaf_seen[linked:], 0, err_msg="leaves past the linked ones are unreachable")
+    np.testing.assert_array_equal(node_seen[: linked - 1], 1, err_msg="every tree node is reachable exactly once")
+    np.testing.assert_array_equal(node_seen[linked - 1 :], 0, err_msg="unused rows are unreachable")
+    assert (lower[linked - 1 :] == np.inf).all() and (upper[linked - 1 :] == -np.inf).all(), "unused rows are empty"
     assert deepest <= structure.max_depth, (deepest, structure.max_depth)
     return deepest
 

@@ -30,8 +30,10 @@ array               shape, dtype    contents
 
 The kind of a leaf (triangle, curve, bounding box) and whether it is opaque follow from its geometry index
 and the static :class:`GeometryInfo` of that geometry. Internal node 0 is the root. Every leaf holds one
-primitive. Leaves past the primitive count are padding:
-their boxes are empty, so no ray enters them and they never show in results.
+primitive. Leaves past the primitive count are padding: their boxes are empty, so no ray enters them and they
+never show in results. The LBVH (``quality="fast"``) links only the real leaves (at least two), in internal
+nodes ``0 .. n - 2``; the rows past them are unused (empty boxes, children pointing at a padding leaf). The
+clustering tree hangs the padding leaves under the root in a subtree of their own.
 """
 
 from __future__ import annotations
@@ -207,6 +209,24 @@ def _node_boxes(children, node_range, leaf_lower, leaf_upper):
     return child_boxes(children, lower, upper, leaf_lower, leaf_upper)
 
 
+def _lbvh(codes: jax.Array, count: int) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """The radix tree over the ``count`` real leaves of ``C`` slots: ``(children, node_range, order)``.
+
+    Only the real leaves (at least 2; padding codes sort last) are sorted and linked, so the work follows the
+    primitive count rather than the power-of-two capacity. The tree takes internal nodes ``0 .. n - 2``; the
+    unused rows past them point at a padding leaf, and no node references them.
+    """
+    capacity = codes.shape[0]
+    real = max(count, 2)
+    order = jnp.arange(real, dtype=jnp.int32)
+    sorted_codes, order = lax.sort((codes[:real], order), num_keys=1, is_stable=True)
+    children, first, last = build_radix_tree(sorted_codes)
+    unused = capacity - real
+    children = jnp.concatenate([children, jnp.full((unused, 2), -1 - real, jnp.int32)])
+    node_range = jnp.concatenate([jnp.stack([first, last], axis=-1), jnp.full((unused, 2), real, jnp.int32)])
+    return children, node_range, jnp.concatenate([order, jnp.arange(real, capacity, dtype=jnp.int32)])
+
+
 @full_precision
 def _build(
     geometries: tuple[TriangleGeometry, ...], capacity: int, quality: str = "fast"
@@ -222,18 +242,22 @@ def _build(
         is_box = boxes[:, 0, 0] <= boxes[:, 1, 0]
         code_lower = jnp.where(is_box[:, None], lax.stop_gradient(boxes[:, 0]), code_lower)
         code_upper = jnp.where(is_box[:, None], lax.stop_gradient(boxes[:, 1]), code_upper)
-    codes = morton_codes(code_lower, code_upper, valid)
-    order = jnp.arange(capacity, dtype=jnp.int32)
-    codes, order = lax.sort((codes, order), num_keys=1, is_stable=True)
-    children, first, last = build_radix_tree(codes)
-    node_range = jnp.stack([first, last], axis=-1)
+    count = sum(g.primitive_count for g in geometries)
+    children, node_range, order = _lbvh(morton_codes(code_lower, code_upper, valid), count)
     if quality == "high":
-        count = sum(g.primitive_count for g in geometries)
         max_depth = 31 + max(1, (capacity - 1).bit_length())  # PrimitiveAccelerationStructure.max_depth
         children, node_range, position = restructure(lower[order], upper[order], count, children, node_range, max_depth)
         order = order[position]
     leaf_lower, leaf_upper = lower[order], upper[order]
-    node_lower, node_upper = _node_boxes(children, node_range, leaf_lower, leaf_upper)
+    if quality == "high":
+        node_lower, node_upper = _node_boxes(children, node_range, leaf_lower, leaf_upper)
+    else:  # the unused rows past the tree over the real leaves stay empty
+        real = max(count, 2)
+        node_lower, node_upper = _node_boxes(
+            children[: real - 1], node_range[: real - 1], leaf_lower[:real], leaf_upper[:real]
+        )
+        node_lower = jnp.pad(node_lower, ((0, capacity - real), (0, 0), (0, 0)), constant_values=jnp.inf)
+        node_upper = jnp.pad(node_upper, ((0, capacity - real), (0, 0), (0, 0)), constant_values=-jnp.inf)
     info = tuple(_geometry_info(g) for g in geometries)
     return PrimitiveAccelerationStructure(
         node_lower=lax.stop_gradient(node_lower),

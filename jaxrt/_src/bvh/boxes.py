@@ -20,14 +20,26 @@ def empty_box(n: int, dtype) -> tuple[jax.Array, jax.Array]:
     return jnp.full((n, 3), jnp.inf, dtype), jnp.full((n, 3), -jnp.inf, dtype)
 
 
+def loop_unroll(unroll: bool | None) -> bool:
+    """The ``unroll`` of the builders' ``fori_loop`` passes; ``None`` picks straight-line code on accelerators
+    (each loop iteration costs a launch and a host round trip there; unrolled, the build of 1M-10M
+    triangles on an H200 ran 2x faster) and a loop on the CPU (where XLA recomputes unrolled passes)."""
+    return jax.default_backend() != "cpu" if unroll is None else bool(unroll)
+
+
 def range_boxes(
-    leaf_lower: jax.Array, leaf_upper: jax.Array, first: jax.Array, last: jax.Array
+    leaf_lower: jax.Array,
+    leaf_upper: jax.Array,
+    first: jax.Array,
+    last: jax.Array,
+    unroll: bool | None = None,
 ) -> tuple[jax.Array, jax.Array]:
     """Union of the leaf boxes ``[first[i], last[i]]`` for every range ``i``.
 
     Args:
       leaf_lower, leaf_upper: ``(n, 3)`` leaf boxes in sorted order.
       first, last: ``(m,)`` int32 inclusive leaf ranges.
+      unroll: unroll the pass over the levels (see :func:`loop_unroll`).
 
     Returns:
       ``(m, 3)`` lower and upper corners.
@@ -35,27 +47,23 @@ def range_boxes(
     n = leaf_lower.shape[0]
     length = last - first + 1
     level = 31 - lax.clz(length.astype(jnp.uint32)).astype(jnp.int32)
-    inf = jnp.array(jnp.inf, leaf_lower.dtype)
     positions = jnp.arange(n, dtype=jnp.int32)
+    # One table of (lower, -upper): a single minimum unites both corners (negation is exact).
+    table = jnp.concatenate([leaf_lower, -leaf_upper], axis=1)
 
     def body(k, carry):
-        table_lo, table_hi, out_lo, out_hi = carry
+        table, out = carry
         width = jnp.left_shift(jnp.int32(1), k)
         b = jnp.clip(last - width + 1, 0, n - 1)
-        lo = jnp.minimum(table_lo[first], table_lo[b])
-        hi = jnp.maximum(table_hi[first], table_hi[b])
-        here = (level == k)[:, None]
-        out_lo = jnp.where(here, lo, out_lo)
-        out_hi = jnp.where(here, hi, out_hi)
+        out = jnp.where((level == k)[:, None], jnp.minimum(table[first], table[b]), out)
         inside = (positions + width < n)[:, None]
-        table_lo = jnp.minimum(table_lo, jnp.where(inside, jnp.roll(table_lo, -width, axis=0), inf))
-        table_hi = jnp.maximum(table_hi, jnp.where(inside, jnp.roll(table_hi, -width, axis=0), -inf))
-        return table_lo, table_hi, out_lo, out_hi
+        table = jnp.minimum(table, jnp.where(inside, jnp.roll(table, -width, axis=0), jnp.inf))
+        return table, out
 
-    out_lo, out_hi = empty_box(first.shape[0], leaf_lower.dtype)
+    out = jnp.full((first.shape[0], 6), jnp.inf, leaf_lower.dtype)
     levels = max(1, n.bit_length())
-    _, _, out_lo, out_hi = lax.fori_loop(0, levels, body, (leaf_lower, leaf_upper, out_lo, out_hi))
-    return out_lo, out_hi
+    _, out = lax.fori_loop(0, levels, body, (table, out), unroll=loop_unroll(unroll))
+    return out[:, :3], -out[:, 3:]
 
 
 def child_boxes(

@@ -8,8 +8,9 @@ For ``n`` leaves the tree has ``n - 1`` internal nodes; internal node 0 is the r
 contiguous range of sorted leaves ``[first[i], last[i]]``. Its two children are each either a leaf (when the
 child's range holds a single key) or the internal node with the same index as the split position.
 
-The binary searches run in ``lax.fori_loop`` with a static trip count (``log2(n)`` steps): unrolled Python
-loops are re-computed by XLA and build an order of magnitude slower.
+The binary searches run in ``lax.fori_loop`` with a static trip count (``log2(n)`` steps). On the CPU the loop
+is kept (XLA recomputes unrolled passes there and builds an order of magnitude slower); on accelerators it is
+unrolled (:func:`jaxrt._src.bvh.boxes.loop_unroll`).
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 from jax import lax
+
+from jaxrt._src.bvh.boxes import loop_unroll
 
 
 def _common_prefix(codes: jax.Array, i: jax.Array, j: jax.Array) -> jax.Array:
@@ -35,11 +38,12 @@ def _common_prefix(codes: jax.Array, i: jax.Array, j: jax.Array) -> jax.Array:
     return jnp.where(inside, delta, -1)
 
 
-def build_radix_tree(sorted_codes: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+def build_radix_tree(sorted_codes: jax.Array, unroll: bool | None = None) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Children and leaf ranges of every internal node.
 
     Args:
       sorted_codes: ``(n,)`` uint32 codes in ascending order, ``n >= 2`` (static).
+      unroll: unroll the binary searches (see :func:`jaxrt._src.bvh.boxes.loop_unroll`).
 
     Returns:
       ``children`` ``(n-1, 2)`` int32: an internal child as its index ``>= 0``, a leaf ``k`` as ``-1 - k``;
@@ -53,20 +57,17 @@ def build_radix_tree(sorted_codes: jax.Array) -> tuple[jax.Array, jax.Array, jax
     d = jnp.where(delta(i, i + 1) - delta(i, i - 1) >= 0, 1, -1).astype(jnp.int32)
     delta_min = delta(i, i - d)
 
-    # Upper bound on the range length: double until the prefix is no longer longer than delta_min.
-    def grow(_, lmax):
-        return jnp.where(delta(i, i + lmax * d) > delta_min, lmax * 2, lmax)
-
-    lmax = lax.fori_loop(0, steps + 2, grow, jnp.full_like(i, 2))
-
-    # Binary search for the exact other end j = i + l * d.
+    # The other end j = i + l d: the largest l whose prefix with i is longer than delta_min. The predicate
+    # holds for l = 1 .. L and fails beyond, so one binary search from the power of two above n finds L
+    # (Karras first doubles an upper bound, then halves: twice the passes for the same L).
     def find_end(k, carry):
         length, t = carry
         t = t // 2
-        take = (t > 0) & (delta(i, i + (length + t) * d) > delta_min)
+        take = delta(i, i + (length + t) * d) > delta_min
         return jnp.where(take, length + t, length), t
 
-    length, _ = lax.fori_loop(0, steps + 2, find_end, (jnp.zeros_like(i), lmax))
+    top = jnp.full_like(i, 1 << (steps + 1))
+    length, _ = lax.fori_loop(0, steps + 1, find_end, (jnp.zeros_like(i), top), unroll=loop_unroll(unroll))
     j = i + length * d
     delta_node = delta(i, j)
 
@@ -77,7 +78,9 @@ def build_radix_tree(sorted_codes: jax.Array) -> tuple[jax.Array, jax.Array, jax
         take = active & (delta(i, i + (split + t) * d) > delta_node)
         return jnp.where(take, split + t, split), t, active & (t > 1)
 
-    split, _, _ = lax.fori_loop(0, steps + 2, find_split, (jnp.zeros_like(i), length, jnp.ones_like(i, bool)))
+    split, _, _ = lax.fori_loop(
+        0, steps + 2, find_split, (jnp.zeros_like(i), length, jnp.ones_like(i, bool)), unroll=loop_unroll(unroll)
+    )
     gamma = i + split * d + jnp.minimum(d, 0)
     first = jnp.minimum(i, j)
     last = jnp.maximum(i, j)
