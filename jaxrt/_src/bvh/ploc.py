@@ -17,8 +17,8 @@ of one pass over the primitives.
 The finished tree is laid out as the radix tree is (see :mod:`jaxrt._src.structures`): internal nodes in
 depth-first order with the root at 0 and the leaves renumbered in the same order, so that every node covers a
 contiguous range of leaves (what refit and the traversals read). Padding leaves hang under the root in a
-subtree of their own, as the radix tree puts them (their code sorts after every real one). Positions in both
-orders are found with pointer jumping (Wyllie's list ranking applied to root paths), ``O(n log depth)`` work.
+subtree of their own (the LBVH leaves them unlinked). Positions in both orders are found with pointer jumping
+(Wyllie's list ranking applied to root paths), ``O(n log depth)`` work.
 
 The clustering tree has no depth bound by construction; where it is deeper than the structure's stack bound
 (``PrimitiveAccelerationStructure.max_depth``) the radix tree is kept instead, so traversal stacks still

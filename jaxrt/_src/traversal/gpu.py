@@ -7,6 +7,9 @@ modes and windings, ray intervals and disabled rays, several geometries per stru
 and ``stats`` tags). Triton is imported only here and only when a trace is compiled, so CPU-only installs
 never import it.
 
+The kernel traces the structure's binary nodes by default; ``KernelOptions(node_width=4)`` traces a 4-wide tree
+with leaf clusters collapsed from them on every call (slower on an H200: docs/performance.md).
+
 What the kernel computes, and why it equals the portable path, is in
 :mod:`jaxrt._src.traversal.triton_kernel`; the arrays it reads are in :mod:`jaxrt._src.traversal.packed`.
 
