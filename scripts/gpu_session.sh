@@ -21,7 +21,7 @@ nvidia-smi --query-gpu=name,driver_version,clocks.sm,clocks.max.sm,memory.used -
 python3 -c "import jax, jax_triton, triton, numpy; print('jax', jax.__version__, 'triton', triton.__version__, 'jax-triton', jax_triton.__version__, 'numpy', numpy.__version__, jax.devices())"
 case $mode in
   check)
-    timeout 200 python3 -m pytest tests/test_gpu.py tests/test_bvh_quality.py tests/test_sharding.py -q \
+    timeout 420 python3 -m pytest tests/test_gpu.py tests/test_bvh_quality.py tests/test_sharding.py -q \
       -p no:cacheprovider -rs -k "not interpreter" 2>&1 | tee "$out/tests.log"
     timeout 200 python3 scripts/build_profile.py 2>&1 | tee "$out/build_profile.log"
     timeout 200 python3 -m jaxrt.bench.gpu --scenes "" --build-sizes 10000000 --repeats 5 --huge-rays 100000001 \
@@ -39,7 +39,7 @@ case $mode in
     timeout 400 python3 -m pytest tests/test_gpu.py -v -p no:cacheprovider -rs -s --durations=5 2>&1 | tee "$out/tests.log"
     ;;
   variants)
-    timeout 150 python3 -m pytest tests/test_gpu.py -q -p no:cacheprovider -rs -k "not interpreter" 2>&1 | tee "$out/tests.log"
+    timeout 420 python3 -m pytest tests/test_gpu.py -q -p no:cacheprovider -rs -k "not interpreter" 2>&1 | tee "$out/tests.log"
     timeout 400 python3 -m jaxrt.bench.gpu --variants --quality fast --repeats 3 --portable-rays 262144 --meshes .meshes \
       --scenes sphere,soup,bunny,sponza --json "$out/bench_variants.json" 2>&1 | tee "$out/bench_variants.log"
     ;;
