@@ -124,14 +124,10 @@ def _compare(result, reference, layout: gpu.KernelOptions, *, any_hit: bool = Fa
 
 
 @pytest.fixture(params=KERNEL_LAYOUTS, ids=lambda o: f"width{o.node_width}-leaf{o.leaf_size}")
-def layout(request, monkeypatch):
+def layout(request, monkeypatch, fresh_caches):
     """Run a test with each kernel layout as the default (compiled traces are dropped around it)."""
     monkeypatch.setattr(gpu, "DEFAULT_OPTIONS", request.param)
-    gpu._traversal.cache_clear()
-    jax.clear_caches()
-    yield request.param
-    gpu._traversal.cache_clear()
-    jax.clear_caches()
+    return request.param
 
 
 # ---------------------------------------------------------------------------------------------- CPU tests
@@ -621,15 +617,11 @@ def test_gradients_equal_the_portable_paths():
 
 @pytest.mark.gpu
 @needs_gpu
-def test_large_batch_walks_blocks_with_a_stride(monkeypatch):
+def test_large_batch_walks_blocks_with_a_stride(monkeypatch, fresh_caches):
     """More ray blocks than programs: each program traces several blocks with the same stack scratch."""
     monkeypatch.setattr(gpu, "MAX_PROGRAMS", 5)
-    gpu._traversal.cache_clear()
-    jax.clear_caches()
     structure, _ = _scene()
     rays = _rays(2048, seed=7)
     got = rt.Intersector(rt.tags.stats, backend="gpu").intersect(rays, structure)
     want = rt.Intersector(rt.tags.stats, backend="portable").intersect(rays, structure)
     _compare(got, want, gpu.DEFAULT_OPTIONS, distance_rtol=1e-6)
-    gpu._traversal.cache_clear()
-    jax.clear_caches()

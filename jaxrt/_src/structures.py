@@ -209,15 +209,14 @@ def _node_boxes(children, node_range, leaf_lower, leaf_upper):
     return child_boxes(children, lower, upper, leaf_lower, leaf_upper)
 
 
-def _lbvh(codes: jax.Array, count: int) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """The radix tree over the ``count`` real leaves of ``C`` slots: ``(children, node_range, order)``.
+def _lbvh(codes: jax.Array, real: int) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """The radix tree over the first ``real`` leaves of ``C`` slots: ``(children, node_range, order)``.
 
     Only the real leaves (at least 2; padding codes sort last) are sorted and linked, so the work follows the
-    primitive count rather than the power-of-two capacity. The tree takes internal nodes ``0 .. n - 2``; the
-    unused rows past them point at a padding leaf, and no node references them.
+    primitive count rather than the power-of-two capacity. The tree takes internal nodes ``0 .. real - 2``;
+    the unused rows past them point at a padding leaf, and no node references them.
     """
     capacity = codes.shape[0]
-    real = max(count, 2)
     order = jnp.arange(real, dtype=jnp.int32)
     sorted_codes, order = lax.sort((codes[:real], order), num_keys=1, is_stable=True)
     children, first, last = build_radix_tree(sorted_codes)
@@ -243,7 +242,8 @@ def _build(
         code_lower = jnp.where(is_box[:, None], lax.stop_gradient(boxes[:, 0]), code_lower)
         code_upper = jnp.where(is_box[:, None], lax.stop_gradient(boxes[:, 1]), code_upper)
     count = sum(g.primitive_count for g in geometries)
-    children, node_range, order = _lbvh(morton_codes(code_lower, code_upper, valid), count)
+    real = max(count, 2)  # leaves the LBVH links
+    children, node_range, order = _lbvh(morton_codes(code_lower, code_upper, valid), real)
     if quality == "high":
         max_depth = 31 + max(1, (capacity - 1).bit_length())  # PrimitiveAccelerationStructure.max_depth
         children, node_range, position = restructure(lower[order], upper[order], count, children, node_range, max_depth)
@@ -252,7 +252,6 @@ def _build(
     if quality == "high":
         node_lower, node_upper = _node_boxes(children, node_range, leaf_lower, leaf_upper)
     else:  # the unused rows past the tree over the real leaves stay empty
-        real = max(count, 2)
         node_lower, node_upper = _node_boxes(
             children[: real - 1], node_range[: real - 1], leaf_lower[:real], leaf_upper[:real]
         )

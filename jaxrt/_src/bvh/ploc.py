@@ -33,7 +33,7 @@ from jax import lax
 
 from jaxrt._src.bvh.radix_tree import build_radix_tree
 
-__all__ = ["RADIUS", "cluster_tree", "restructure", "path_sums"]
+__all__ = ["RADIUS", "cluster_tree", "restructure", "path_sums", "parent_nodes"]
 
 #: Neighbours searched on each side of a cluster (Meister & Bittner's ``r``).
 RADIUS = 16
@@ -145,6 +145,13 @@ def cluster_tree(lower: jax.Array, upper: jax.Array, radius: int = RADIUS) -> tu
     return state[6], state[7]
 
 
+def parent_nodes(children: jax.Array) -> jax.Array:
+    """The parent of every internal node of the tree ``children`` ``(m, 2)`` (leaves ``< 0``); -1 for the root."""
+    m = children.shape[0]
+    pairs = jnp.broadcast_to(jnp.arange(m, dtype=jnp.int32)[:, None], (m, 2))
+    return jnp.full((m,), -1, jnp.int32).at[jnp.where(children >= 0, children, m)].set(pairs, mode="drop")
+
+
 def path_sums(parent: jax.Array, *values: jax.Array) -> tuple[jax.Array, ...]:
     """For every node, the sum of each of ``values`` over the node and all its ancestors (pointer jumping)."""
 
@@ -174,7 +181,7 @@ def _depth_first_layout(children: jax.Array, subtree: jax.Array, offset: int):
     sides = jnp.broadcast_to(jnp.arange(2, dtype=jnp.int32), (m, 2))
     node_slot = jnp.where(internal, children, m)
     leaf_slot = jnp.where(internal, n, -1 - children)
-    parent = jnp.full((m,), -1, jnp.int32).at[node_slot].set(pairs, mode="drop")
+    parent = parent_nodes(children)
     side = jnp.zeros((m,), jnp.int32).at[node_slot].set(sides, mode="drop")
     leaf_parent = jnp.zeros((n,), jnp.int32).at[leaf_slot].set(pairs, mode="drop")
     leaf_side = jnp.zeros((n,), jnp.int32).at[leaf_slot].set(sides, mode="drop")

@@ -128,8 +128,7 @@ def _launch(
     size = rays.shape[1]
     lanes = options.rays_per_program
     programs = max(1, min(size // lanes, MAX_PROGRAMS))
-    wide = options.node_width == 4
-    if wide:
+    if options.node_width == 4:
         stack = packed.wide_stack_size(stack)
         kernel, extra = triton_kernel.trace_wide_kernel, {}
     else:

@@ -46,7 +46,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from jaxrt._src.bvh.ploc import path_sums
+from jaxrt._src.bvh.ploc import parent_nodes, path_sums
 from jaxrt._src.numerics import safe_reciprocal
 from jaxrt._src.primitives import triangle
 
@@ -132,12 +132,7 @@ def pack_wide_nodes(
     node = jnp.arange(m, dtype=jnp.int32)
     internal = children >= 0
     safe = jnp.maximum(children, 0)
-    parent = (
-        jnp.full((m,), -1, jnp.int32)
-        .at[jnp.where(internal, children, m)]
-        .set(jnp.broadcast_to(node[:, None], (m, 2)), mode="drop")
-    )
-    (levels,) = path_sums(parent, jnp.ones((m,), jnp.int32))  # depth + 1
+    (levels,) = path_sums(parent_nodes(children), jnp.ones((m,), jnp.int32))  # depth + 1
     size = node_range[:, 1] - node_range[:, 0] + 1
     small = (size <= leaf_size) & (node > 0)
     wide = (levels % 2 == 1) & ~small

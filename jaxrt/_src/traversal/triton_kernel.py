@@ -172,6 +172,77 @@ def _slab(
 
 
 @triton.jit
+def _load_ray(rays_ptr, n_rays, ray):
+    """One ray per lane from the packed ray block: origin, reciprocal direction, shear, ``t_min``, sheared axes,
+    the origin in those axes, the initial distance bound (``-inf`` for a disabled ray) and ``done``."""
+    ox = tl.load(rays_ptr + ray)
+    oy = tl.load(rays_ptr + n_rays + ray)
+    oz = tl.load(rays_ptr + 2 * n_rays + ray)
+    ix = tl.load(rays_ptr + 3 * n_rays + ray)
+    iy = tl.load(rays_ptr + 4 * n_rays + ray)
+    iz = tl.load(rays_ptr + 5 * n_rays + ray)
+    sx = tl.load(rays_ptr + 6 * n_rays + ray)
+    sy = tl.load(rays_ptr + 7 * n_rays + ray)
+    sz = tl.load(rays_ptr + 8 * n_rays + ray)
+    t_min = tl.load(rays_ptr + 9 * n_rays + ray)
+    bound = tl.load(rays_ptr + 10 * n_rays + ray)
+    kx = tl.load(rays_ptr + 11 * n_rays + ray).to(tl.int32)
+    ky = tl.load(rays_ptr + 12 * n_rays + ray).to(tl.int32)
+    kz = tl.load(rays_ptr + 13 * n_rays + ray).to(tl.int32)
+    enabled = tl.load(rays_ptr + 14 * n_rays + ray) != 0
+    okx = _select(kx, ox, oy, oz)
+    oky = _select(ky, ox, oy, oz)
+    okz = _select(kz, ox, oy, oz)
+    distance = tl.where(enabled, bound, float("-inf"))
+    done = tl.where(enabled, 0, 1)
+    return ox, oy, oz, ix, iy, iz, sx, sy, sz, t_min, kx, ky, kz, okx, oky, okz, distance, done
+
+
+@triton.jit
+def _store_result(
+    distance_ptr, leaf_ptr, visited_ptr, tested_ptr, overflow_ptr, ray, distance, leaf, visited, tested, overflow
+):
+    """Write one ray per lane of the traversal result."""
+    tl.store(distance_ptr + ray, distance)
+    tl.store(leaf_ptr + ray, leaf)
+    tl.store(visited_ptr + ray, visited)
+    tl.store(tested_ptr + ray, tested)
+    tl.store(overflow_ptr + ray, overflow)
+
+
+@triton.jit
+def _keep_nearer(hit, t, index, distance, leaf):
+    """Keep leaf ``index`` at distance ``t`` where it is hit and strictly nearer than the current hit; the first
+    hit may lie exactly at ``t_max`` (closed interval)."""
+    found = hit & ((t < distance) | ((leaf < 0) & (t <= distance)))
+    return tl.where(found, t, distance), tl.where(found, index, leaf)
+
+
+@triton.jit
+def _push(stack_base, depth, overflow, entry, STACK: tl.constexpr, LANES: tl.constexpr):
+    """Push ``entry`` where it is a node (``>= 0``); a push past ``STACK`` entries is flagged and dropped."""
+    want = entry >= 0
+    push = want & (depth < STACK)
+    tl.store(stack_base + depth * LANES, entry, mask=push)
+    return depth + push.to(tl.int32), overflow | (want & (depth >= STACK)).to(tl.int32)
+
+
+@triton.jit
+def _advance(stack_base, active, enter, node, depth, leaf, done, ANY_HIT: tl.constexpr, LANES: tl.constexpr):
+    """Enter node ``enter`` where it is one (``>= 0``), else pop the stack; a lane whose stack is empty (or, in
+    any-hit mode, that has a hit) is done. Returns ``(node, depth, done)``."""
+    pop = active & (enter < 0)
+    nonempty = depth > 0
+    top = tl.load(stack_base + (depth - 1) * LANES, mask=pop & nonempty, other=0)
+    node = tl.where(active, tl.where(pop, top, enter), node)
+    depth = tl.where(pop & nonempty, depth - 1, depth)
+    finished = pop & (nonempty == 0)
+    if ANY_HIT:
+        finished = finished | (active & (leaf >= 0))
+    return node, depth, tl.where(finished, 1, done)
+
+
+@triton.jit
 def trace_kernel(
     nodes_ptr,
     tris_ptr,
@@ -200,30 +271,12 @@ def trace_kernel(
     block = pid
     while block < n_rays // LANES:
         ray = block * LANES + lane
-        ox = tl.load(rays_ptr + ray)
-        oy = tl.load(rays_ptr + n_rays + ray)
-        oz = tl.load(rays_ptr + 2 * n_rays + ray)
-        ix = tl.load(rays_ptr + 3 * n_rays + ray)
-        iy = tl.load(rays_ptr + 4 * n_rays + ray)
-        iz = tl.load(rays_ptr + 5 * n_rays + ray)
-        sx = tl.load(rays_ptr + 6 * n_rays + ray)
-        sy = tl.load(rays_ptr + 7 * n_rays + ray)
-        sz = tl.load(rays_ptr + 8 * n_rays + ray)
-        t_min = tl.load(rays_ptr + 9 * n_rays + ray)
-        bound = tl.load(rays_ptr + 10 * n_rays + ray)
-        kx = tl.load(rays_ptr + 11 * n_rays + ray).to(tl.int32)
-        ky = tl.load(rays_ptr + 12 * n_rays + ray).to(tl.int32)
-        kz = tl.load(rays_ptr + 13 * n_rays + ray).to(tl.int32)
-        enabled = tl.load(rays_ptr + 14 * n_rays + ray) != 0
-        okx = _select(kx, ox, oy, oz)
-        oky = _select(ky, ox, oy, oz)
-        okz = _select(kz, ox, oy, oz)
-
-        distance = tl.where(enabled, bound, float("-inf"))
+        ox, oy, oz, ix, iy, iz, sx, sy, sz, t_min, kx, ky, kz, okx, oky, okz, distance, done = _load_ray(
+            rays_ptr, n_rays, ray
+        )
         node = tl.zeros((LANES,), tl.int32)
         depth = tl.zeros((LANES,), tl.int32)
         leaf = tl.full((LANES,), -1, tl.int32)
-        done = tl.where(enabled, 0, 1)
         visited = tl.zeros((LANES,), tl.int32)
         tested = tl.zeros((LANES,), tl.int32)
         overflow = tl.zeros((LANES,), tl.int32)
@@ -341,10 +394,7 @@ def trace_kernel(
             second = t1 < t0
             best_t = tl.where(second, t1, t0)
             best_leaf = tl.where(second, -1 - c1, -1 - c0)
-            # Strictly nearer than the current hit; the first hit may lie exactly at t_max (closed interval).
-            found = (h0 | h1) & ((best_t < distance) | ((leaf < 0) & (best_t <= distance)))
-            distance = tl.where(found, best_t, distance)
-            leaf = tl.where(found, best_leaf, leaf)
+            distance, leaf = _keep_nearer(h0 | h1, best_t, best_leaf, distance, leaf)
 
             inner0 = hit0 & (c0 >= 0)
             inner1 = hit1 & (c1 >= 0)
@@ -352,29 +402,13 @@ def trace_kernel(
             near = tl.where(near_first, c0, c1)
             far = tl.where(near_first, c1, c0)
             both = inner0 & inner1
-            one = tl.where(inner0, c0, c1)
-            push = both & (depth < STACK)
-            tl.store(stack_base + depth * LANES, far, mask=push)
-            overflow = overflow | (both & (depth >= STACK)).to(tl.int32)
-            depth = depth + push.to(tl.int32)
-            pop = active & (inner0 == 0) & (inner1 == 0)
-            nonempty = depth > 0
-            top = tl.load(stack_base + (depth - 1) * LANES, mask=pop & nonempty, other=0)
-            next_node = tl.where(both, near, tl.where(pop, top, one))
-            node = tl.where(active, next_node, node)
-            depth = tl.where(pop & nonempty, depth - 1, depth)
-            finished = pop & (nonempty == 0)
-            if ANY_HIT:
-                finished = finished | (active & (leaf >= 0))
-            done = tl.where(finished, 1, done)
+            depth, overflow = _push(stack_base, depth, overflow, tl.where(both, far, -1), STACK, LANES)
+            enter = tl.where(both, near, tl.where(inner0, c0, tl.where(inner1, c1, -1)))
+            node, depth, done = _advance(stack_base, active, enter, node, depth, leaf, done, ANY_HIT, LANES)
             visited = visited + active.to(tl.int32)
             tested = tested + test0.to(tl.int32) + test1.to(tl.int32)
 
-        tl.store(distance_ptr + ray, distance)
-        tl.store(leaf_ptr + ray, leaf)
-        tl.store(visited_ptr + ray, visited)
-        tl.store(tested_ptr + ray, tested)
-        tl.store(overflow_ptr + ray, overflow)
+        _store_result(distance_ptr, leaf_ptr, visited_ptr, tested_ptr, overflow_ptr, ray, distance, leaf, visited, tested, overflow)  # fmt: skip
         block += n_programs
 
 
@@ -393,15 +427,6 @@ def _order(key_a, ref_a, key_b, ref_b):
         tl.where(swap, key_a, key_b),
         tl.where(swap, ref_a, ref_b),
     )
-
-
-@triton.jit
-def _push(stack_base, depth, overflow, entry, STACK: tl.constexpr, LANES: tl.constexpr):
-    """Push ``entry`` where it is a node (``>= 0``); a push past ``STACK`` entries is flagged and dropped."""
-    want = entry >= 0
-    push = want & (depth < STACK)
-    tl.store(stack_base + depth * LANES, entry, mask=push)
-    return depth + push.to(tl.int32), overflow | (want & (depth >= STACK)).to(tl.int32)
 
 
 @triton.jit
@@ -436,10 +461,7 @@ def _leaf_cluster(
         hit, t = _triangle(
             tris_ptr, first + j, mask, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, CULL, LANES, VECTOR
         )
-        # Strictly nearer than the current hit; the first hit may lie exactly at t_max (closed interval).
-        found = hit & ((t < distance) | ((leaf < 0) & (t <= distance)))
-        distance = tl.where(found, t, distance)
-        leaf = tl.where(found, first + j, leaf)
+        distance, leaf = _keep_nearer(hit, t, first + j, distance, leaf)
         tested = tested + mask.to(tl.int32)
     return distance, leaf, tested
 
@@ -486,30 +508,12 @@ def trace_wide_kernel(
     block = pid
     while block < n_rays // LANES:
         ray = block * LANES + lane
-        ox = tl.load(rays_ptr + ray)
-        oy = tl.load(rays_ptr + n_rays + ray)
-        oz = tl.load(rays_ptr + 2 * n_rays + ray)
-        ix = tl.load(rays_ptr + 3 * n_rays + ray)
-        iy = tl.load(rays_ptr + 4 * n_rays + ray)
-        iz = tl.load(rays_ptr + 5 * n_rays + ray)
-        sx = tl.load(rays_ptr + 6 * n_rays + ray)
-        sy = tl.load(rays_ptr + 7 * n_rays + ray)
-        sz = tl.load(rays_ptr + 8 * n_rays + ray)
-        t_min = tl.load(rays_ptr + 9 * n_rays + ray)
-        bound = tl.load(rays_ptr + 10 * n_rays + ray)
-        kx = tl.load(rays_ptr + 11 * n_rays + ray).to(tl.int32)
-        ky = tl.load(rays_ptr + 12 * n_rays + ray).to(tl.int32)
-        kz = tl.load(rays_ptr + 13 * n_rays + ray).to(tl.int32)
-        enabled = tl.load(rays_ptr + 14 * n_rays + ray) != 0
-        okx = _select(kx, ox, oy, oz)
-        oky = _select(ky, ox, oy, oz)
-        okz = _select(kz, ox, oy, oz)
-
-        distance = tl.where(enabled, bound, float("-inf"))
+        ox, oy, oz, ix, iy, iz, sx, sy, sz, t_min, kx, ky, kz, okx, oky, okz, distance, done = _load_ray(
+            rays_ptr, n_rays, ray
+        )
         node = tl.zeros((LANES,), tl.int32)
         depth = tl.zeros((LANES,), tl.int32)
         leaf = tl.full((LANES,), -1, tl.int32)
-        done = tl.where(enabled, 0, 1)
         visited = tl.zeros((LANES,), tl.int32)
         tested = tl.zeros((LANES,), tl.int32)
         overflow = tl.zeros((LANES,), tl.int32)
@@ -583,20 +587,8 @@ def trace_wide_kernel(
             depth, overflow = _push(stack_base, depth, overflow, a3, STACK, LANES)
             depth, overflow = _push(stack_base, depth, overflow, a2, STACK, LANES)
             depth, overflow = _push(stack_base, depth, overflow, a1, STACK, LANES)
-            pop = active & (a0 < 0)
-            nonempty = depth > 0
-            top = tl.load(stack_base + (depth - 1) * LANES, mask=pop & nonempty, other=0)
-            node = tl.where(active, tl.where(pop, top, a0), node)
-            depth = tl.where(pop & nonempty, depth - 1, depth)
-            finished = pop & (nonempty == 0)
-            if ANY_HIT:
-                finished = finished | (active & (leaf >= 0))
-            done = tl.where(finished, 1, done)
+            node, depth, done = _advance(stack_base, active, a0, node, depth, leaf, done, ANY_HIT, LANES)
             visited = visited + active.to(tl.int32)
 
-        tl.store(distance_ptr + ray, distance)
-        tl.store(leaf_ptr + ray, leaf)
-        tl.store(visited_ptr + ray, visited)
-        tl.store(tested_ptr + ray, tested)
-        tl.store(overflow_ptr + ray, overflow)
+        _store_result(distance_ptr, leaf_ptr, visited_ptr, tested_ptr, overflow_ptr, ray, distance, leaf, visited, tested, overflow)  # fmt: skip
         block += n_programs
