@@ -142,8 +142,12 @@ class CurveRay(NamedTuple):
 
 
 def curve_ray(origin: jax.Array, direction: jax.Array) -> CurveRay:
-    """The ray-space frame of one ray (Duff et al. 2017); ``direction`` must be non-zero."""
-    length = jnp.sqrt(jnp.sum(direction * direction))
+    """The ray-space frame of one ray (Duff et al. 2017); ``direction`` must be non-zero.
+
+    The squared length is written as multiply-adds, not ``jnp.sum``: XLA 0.11's CPU YNNPACK reduce fusion
+    returns ``1 / length = inf`` for this reduce-sqrt-divide pattern on batches of 4096 rays or more.
+    """
+    length = jnp.sqrt(direction[0] * direction[0] + direction[1] * direction[1] + direction[2] * direction[2])
     n = direction / length
     sign = jnp.where(n[2] >= 0, 1.0, -1.0).astype(n.dtype)
     a = -1.0 / (sign + n[2])
