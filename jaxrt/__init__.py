@@ -9,6 +9,10 @@ Examples:
   (True, 1.0)
 """
 
+# First, before any jax computation: warns on an untested jax and works around known defects of tested ones.
+from jaxrt._src import versions as _versions  # noqa: F401
+
+# isort: split
 from jaxrt import intersection_functions, io, shading, tags
 from jaxrt._src.candidate import BoundingBoxCandidate, TriangleCandidate
 from jaxrt._src.curves import CurveBasis, CurveEndCaps, CurveGeometry, CurveType

@@ -1,9 +1,56 @@
 #!/usr/bin/env bash
-# Lint and run the test suite on the CPU. Creates .venv on first use.
+# Lint and run the test suite on the CPU. Creates the lane's virtual environment on first use.
+#
+#   bash scripts/test.sh [pytest args]                  # .venv: Python 3.11 (or $PYTHON), the jax pip resolves
+#   JAXRT_LANE=next bash scripts/test.sh [pytest args]  # .venv-next: the newest Python 3.13/3.12 found
+#                                                       # ($PYTHON_NEXT), upgraded to the newest jax in range
+#
+# The package is installed in setuptools' "compat" editable mode (a path entry, not an import hook), so that
+# a clone in a folder named jaxrt still imports the package, not the clone, from the folder above it.
+# Exit status: pytest's, except that "no tests collected" (5) is a failure (1).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-PYTHON=${PYTHON:-python3}
-[ -x .venv/bin/python ] || "$PYTHON" -m venv .venv
-.venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test]"
-.venv/bin/python -m ruff check jaxrt tests examples
-exec .venv/bin/python -m pytest jaxrt tests -q -p no:cacheprovider "$@"
+LANE=${JAXRT_LANE:-main}
+PIP=(-m pip install -q --disable-pip-version-check --config-settings editable_mode=compat)
+
+find_next_python() {
+  if [ -n "${PYTHON_NEXT:-}" ]; then echo "$PYTHON_NEXT"; return; fi
+  local root candidate
+  root=$(pyenv root 2>/dev/null || echo "$HOME/.pyenv")
+  for candidate in python3.13 python3.12 "$root"/versions/3.13*/bin/python3 "$root"/versions/3.12*/bin/python3; do
+    if command -v "$candidate" >/dev/null 2>&1; then command -v "$candidate"; return; fi
+  done
+  return 1
+}
+
+case "$LANE" in
+  main)
+    VENV=.venv
+    [ -x "$VENV/bin/python" ] || "${PYTHON:-python3}" -m venv "$VENV"
+    "$VENV/bin/python" "${PIP[@]}" -e ".[test]"
+    ;;
+  next)
+    VENV=.venv-next
+    if [ ! -x "$VENV/bin/python" ]; then
+      NEXT=$(find_next_python) || { echo "scripts/test.sh: JAXRT_LANE=next needs Python 3.13 or 3.12 (set PYTHON_NEXT)" >&2; exit 2; }
+      "$NEXT" -m venv "$VENV"
+      echo '*' >"$VENV/.gitignore"
+    fi
+    # The newest jax and jaxlib inside pyproject.toml's range, even when an older one is installed.
+    "$VENV/bin/python" "${PIP[@]}" --upgrade -e ".[test]" jax jaxlib
+    ;;
+  *)
+    echo "scripts/test.sh: JAXRT_LANE must be main or next, got '$LANE'" >&2
+    exit 2
+    ;;
+esac
+
+"$VENV/bin/python" -c 'import sys, jax, jaxlib; print(f"lane {sys.argv[1]}: Python {sys.version.split()[0]}, jax {jax.__version__}, jaxlib {jaxlib.__version__}")' "$LANE"
+"$VENV/bin/python" -m ruff check jaxrt tests examples
+status=0
+"$VENV/bin/python" -m pytest jaxrt tests -q -p no:cacheprovider "$@" || status=$?
+if [ "$status" -eq 5 ]; then
+  echo "scripts/test.sh: lane $LANE collected no tests (pytest exit 5): failing" >&2
+  status=1
+fi
+exit "$status"
