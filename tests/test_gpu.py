@@ -244,12 +244,26 @@ def test_unavailable_without_gpu():
         rt.Intersector(backend="gpu").intersect(_rays(8), structure)
 
 
-def _emulated_kernel(calls, *args, options, any_hit, cull, stack):
-    """The kernel's contract computed by the portable traversal on the packed-then-unpacked nodes."""
-    node_lower, node_upper, node_children, node_range, leaf_triangle, origin = args[:6]
-    calls.append(origin.shape[0])
+def _emulated_kernel(calls, *args, config):
+    """The kernel's contract computed by the portable traversal on the packed-then-unpacked nodes (one
+    primitive structure, every ray starting at node 0)."""
+    from test_gpu_instanced import _Triangles
+
+    from jaxrt._src.traversal import stack
+
+    node_lower, node_upper, node_children, _, leaf_triangle = args[:5]
+    origin, direction, t_min, t_max, enabled = args[9:14]
+    calls.append((origin.shape[0], config))
+    if config.roots:  # a batch of scenes: the launch is recorded, the result left to the interpreter tests
+        n = origin.shape[0]
+        zero = jnp.zeros((n,), jnp.int32)
+        return jnp.full((n,), jnp.inf), zero - 1, jnp.zeros((n, config.levels), jnp.int32), zero, zero, zero
     nodes = packed.unpack_nodes(packed.pack_nodes(node_lower, node_upper, node_children))
-    return gpu._portable(*nodes, node_range, leaf_triangle, *args[5:], any_hit=any_hit, cull=cull, stack=stack)
+    leaves = _Triangles(leaf_triangle, config.cull)
+    fn = functools.partial(stack.traverse, *nodes, leaves, any_hit=config.any_hit, stack_size=config.stack)
+    out = jax.vmap(fn)(origin, direction, t_min, t_max, enabled)
+    chain = jnp.zeros((origin.shape[0], 0), jnp.int32)
+    return out.distance, out.leaf, chain, out.nodes_visited, out.primitives_tested, out.stack_overflow.astype(jnp.int32)
 
 
 @pytest.fixture
@@ -284,20 +298,18 @@ def test_gpu_path_plumbing_with_emulated_kernel(monkeypatch, fresh_caches):
     batch = jax.tree_util.tree_map(lambda a: a[:128].reshape(4, 32, *a.shape[1:]), rays)
     fast = rt.Intersector(backend="gpu")
     batched = jax.vmap(lambda r: fast.intersect(r, structure))(batch)
-    assert 128 in calls, calls
+    assert 128 in [n for n, _ in calls], calls
     flat = rt.Intersector(backend="portable").intersect(jax.tree_util.tree_map(lambda a: a[:128], rays), structure)
     np.testing.assert_array_equal(np.asarray(batched.primitive_id).reshape(-1), flat.primitive_id)
 
-    # vmap over (rays, structure) pairs: the portable fallback; a folded launch would trace 2 x 8 rays.
+    # vmap over (rays, structure) pairs: one launch over both scenes' rays, each ray with its own root (the
+    # results are checked in the interpreter, tests/test_gpu_instanced.py).
     calls.clear()
     other, _ = _scene(seed=3)
     pair = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), structure, other)
     two = jax.tree_util.tree_map(lambda a: a[:16].reshape(2, 8, *a.shape[1:]), rays)
-    result = jax.vmap(fast.intersect)(two, pair)
-    assert 16 not in calls, calls
-    for i, s in enumerate((structure, other)):
-        single = rt.Intersector(backend="portable").intersect(jax.tree_util.tree_map(lambda a, i=i: a[i], two), s)
-        np.testing.assert_array_equal(result.primitive_id[i], single.primitive_id)
+    jax.vmap(fast.intersect)(two, pair)
+    assert [(n, c.roots, c.primitive_leaves) for n, c in calls if n == 16] == [(16, True, 2 * structure.capacity)]
 
     # grad: through the differentiable re-intersection of the picked triangle.
     vertices, faces = _sphere()
@@ -315,41 +327,6 @@ def test_gpu_path_plumbing_with_emulated_kernel(monkeypatch, fresh_caches):
     assert np.abs(np.asarray(g_fast)).sum() > 0
 
 
-class _HostArray:
-    """A NumPy array that Triton's interpreter accepts as a tensor (it expects torch-like methods)."""
-
-    def __init__(self, array: np.ndarray):
-        self.array = np.ascontiguousarray(array)
-        self.dtype = self.array.dtype
-
-    def data_ptr(self) -> int:
-        return self.array.ctypes.data
-
-    def untyped_storage(self):
-        return self
-
-    def cpu(self):
-        return self
-
-    def new_empty(self, *args, **kwargs):
-        return self
-
-    def set_(self, *args):
-        return self
-
-    def storage_offset(self) -> int:
-        return 0
-
-    def size(self):
-        return self.array.shape
-
-    def stride(self):
-        return self.array.strides
-
-    def copy_(self, other):
-        return self
-
-
 def test_kernel_in_triton_interpreter(monkeypatch, fresh_caches):
     """The kernel itself (Triton's interpreter, on the CPU) against the portable traversal."""
     pytest.importorskip("triton")
@@ -363,33 +340,11 @@ def test_kernel_in_triton_interpreter(monkeypatch, fresh_caches):
         )
         assert done.returncode == 0, done.stdout[-4000:] + done.stderr[-2000:]
         return
-    from jaxrt._src.traversal import triton_kernel as module
-
-    def launch(nodes, triangles, rays, *, any_hit, cull, stack, options):
-        size = rays.shape[1]
-        lanes = options.rays_per_program
-        programs = max(1, min(size // lanes, 3))  # fewer programs than blocks: the strided loop runs
-        if options.node_width == 4:
-            kernel, stack, extra = module.trace_wide_kernel, packed.wide_stack_size(stack), {}
-        else:
-            kernel, extra = module.trace_kernel, dict(BRANCH=options.leaf_branch)
-
-        def host(nodes, triangles, rays):
-            outs = [np.zeros(size, np.float32)] + [np.zeros(size, np.int32) for _ in range(4)]
-            scratch = np.zeros(programs * stack * lanes, np.int32)
-            wrapped = [_HostArray(np.asarray(a)) for a in (nodes, triangles, rays, *outs, scratch)]
-            kernel[(programs,)](
-                *wrapped[:3], size, programs, *wrapped[3:],
-                STACK=stack, ANY_HIT=any_hit, CULL=cull, FAR_SCALE=float(np.float32(gpu.box.FAR_SCALE)), PARALLEL=float(np.float32(gpu.box.PARALLEL_RECIPROCAL)),
-                LANES=lanes, VECTOR=options.vector_loads, **extra,
-            )  # fmt: skip
-            return tuple(w.array for w in wrapped[3:8])
-
-        shapes = [jax.ShapeDtypeStruct((size,), jnp.float32)] + [jax.ShapeDtypeStruct((size,), jnp.int32)] * 4
-        return jax.pure_callback(host, shapes, nodes, triangles, rays)
+    from test_gpu_instanced import interpreted_launch
 
     monkeypatch.setattr(gpu, "unavailable_reason", lambda intersector: None)
-    monkeypatch.setattr(gpu, "_launch", launch)
+    monkeypatch.setattr(gpu, "_launch", interpreted_launch)
+    monkeypatch.setattr(gpu, "MAX_PROGRAMS", 3)  # fewer programs than blocks: the strided loop runs
     structure, _ = _scene()
     rays = _rays(160)
     tags = (rt.tags.triangle_data, rt.tags.stats)
@@ -574,8 +529,15 @@ def test_composes_with_jit_vmap_grad():
     other, _ = _scene(seed=5)
     pair = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), structure, other)
     two = jax.tree_util.tree_map(lambda a: a.reshape(2, 512, *a.shape[1:]), rays)
-    per_pair = jax.vmap(lambda r, s: fast.intersect(r, s).primitive_id)(two, pair)
+    pairs_fn = jax.jit(jax.vmap(lambda r, s: fast.intersect(r, s).primitive_id))
+    per_pair = pairs_fn(two, pair)
     np.testing.assert_array_equal(per_pair[0], want.primitive_id[:512])
+    second = jax.tree_util.tree_map(lambda a: a[1], two)
+    np.testing.assert_array_equal(per_pair[1], slow.intersect(second, other).primitive_id)
+    hlo = pairs_fn.lower(two, pair).as_text()
+    launches, loops = hlo.count("custom_call @triton_kernel_call"), hlo.count("stablehlo.while")
+    print(f"vmap over 2 (rays, structure) pairs: {launches} kernel launch(es), {loops} while loop(s) in the HLO")
+    assert launches == 1 and loops == 0  # both scenes in one launch
 
     _, faces = _sphere()
 

@@ -1,14 +1,20 @@
 """GPU traversal: a Triton kernel called through jax-triton, behind the same contract as the portable traversal.
 
+:func:`trace_scene` traces a :class:`~jaxrt._src.traversal.scene.TraversalScene` (any number of instance
+levels; a primitive structure is a scene of zero levels) and returns the
+:class:`~jaxrt._src.traversal.scene.TraversalResult` of the portable traversal: the same leaf, distance and
+instance chain. :func:`trace` is the same for a primitive structure.
+
 The intersector picks this path (``backend="auto"`` or ``"gpu"``) when :func:`unavailable_reason` returns
 ``None``: the default JAX backend is a GPU, Triton and jax-triton import (``pip install jaxrt[gpu]``), geometry
 is float32, and the intersector asks only for what the kernel covers (triangles, nearest and any hit, cull
-modes and windings, ray intervals and disabled rays, several geometries per structure, the ``triangle_data``
-and ``stats`` tags). Triton is imported only here and only when a trace is compiled, so CPU-only installs
-never import it.
+modes and windings, ray intervals, masks and disabled rays, several geometries per structure, instances over
+any number of levels, and the tags of :data:`COVERED_TAGS`). Triton is imported only here and only when a trace
+is compiled, so CPU-only installs never import it.
 
-The kernel traces the structure's binary nodes by default; ``KernelOptions(node_width=4)`` traces a 4-wide tree
-with leaf clusters collapsed from them on every call (slower on an H200: docs/performance.md).
+The kernel traces the scene's binary nodes by default; ``KernelOptions(node_width=4)`` traces a 4-wide tree
+with leaf clusters collapsed from them on every call (slower on an H200: docs/performance.md). The 4-wide
+layout covers one primitive structure only: instanced scenes and batches of scenes take the binary layout.
 
 What the kernel computes, and why it equals the portable path, is in
 :mod:`jaxrt._src.traversal.triton_kernel`; the arrays it reads are in :mod:`jaxrt._src.traversal.packed`.
@@ -16,8 +22,9 @@ What the kernel computes, and why it equals the portable path, is in
 Composition:
   - ``jax.jit``: the kernel is one XLA custom call.
   - ``jax.vmap`` over ray batches: a batching rule folds the batch axis into the ray axis (one launch).
-  - ``jax.vmap`` over (rays, structure) pairs: the rule falls back to the portable stack traversal, vmapped
-    over the structures (the kernel traces one structure per launch).
+  - ``jax.vmap`` over (rays, scene) pairs: the rule concatenates the scenes' arrays with per-scene index
+    offsets (one elementwise pass), gives each ray its scene's root node, launches once, and maps leaf and
+    instance ids back to each scene's numbering.
   - ``jax.grad``: the kernel only picks the leaf; its inputs are detached and the intersector re-computes the
     hit differentiably, so no derivative of the kernel is needed.
 """
@@ -26,26 +33,38 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from jaxrt._src import numerics
 from jaxrt._src.primitives import box
 from jaxrt._src.traversal import packed
-from jaxrt._src.traversal.stack import TraversalResult, traverse
+from jaxrt._src.traversal.scene import TraversalLayout, TraversalResult, TraversalScene
 
-__all__ = ["KernelOptions", "unavailable_reason", "trace", "COVERED_TAGS", "MAX_PROGRAMS"]
+__all__ = [
+    "KernelOptions",
+    "DEFAULT_OPTIONS",
+    "COVERED_TAGS",
+    "MAX_PROGRAMS",
+    "unavailable_reason",
+    "trace",
+    "trace_scene",
+]
 
-#: Intersector tags whose fields the GPU path can produce (the intersector re-computes them from the leaf).
-COVERED_TAGS = frozenset({"triangle_data", "stats", "primitive_data"})
-#: Most programs per launch; larger batches are walked with a stride, which bounds the stack scratch buffer
-#: to ``MAX_PROGRAMS * rays_per_program * stack depth`` int32 (about 230 MB for a 2**24-leaf structure).
+#: Intersector tags whose fields the GPU path can produce (the intersector re-computes them from the leaf and
+#: the instance chain).
+COVERED_TAGS = frozenset(
+    {"triangle_data", "stats", "primitive_data", "instancing", "max_levels", "world_space_data", "user_instance_id"}
+)
+#: Most programs per launch; larger batches are walked with a stride, which bounds the scratch buffers (stack,
+#: and per-level rays below instances) to ``MAX_PROGRAMS * rays_per_program`` times the entries per ray.
 MAX_PROGRAMS = 1 << 15
-#: Leading arguments of the kernel call that come from the structure (the rest are rays).
-STRUCTURE_ARGS = 5
+#: Leading arguments of the kernel call that come from the scene (the rest are per ray).
+SCENE_ARGS = 9
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,7 +81,8 @@ class KernelOptions:
       node_width: 2 traces the structure's binary nodes (step for step the portable traversal's decisions);
         4 traces a 4-wide tree with leaf clusters, collapsed from them on every call
         (:func:`~jaxrt._src.traversal.packed.pack_wide_nodes`): the same nearest distances, but the choice
-        among equally distant triangles and the first hit of an any-hit query may differ.
+        among equally distant triangles and the first hit of an any-hit query may differ. One primitive
+        structure only: instanced scenes and batches of scenes are traced with the binary nodes.
       leaf_size: most leaves in one leaf cluster of the 4-wide tree (1-4).
 
     The defaults were the fastest on an H200 (``python -m jaxrt.bench.gpu --variants``).
@@ -83,6 +103,29 @@ class KernelOptions:
 
 
 DEFAULT_OPTIONS = KernelOptions()
+
+
+@dataclasses.dataclass(frozen=True)
+class _Config:
+    """Everything static about one kernel call (hashable: compiled traces are cached by it)."""
+
+    any_hit: bool
+    cull: int
+    stack: int  # stack entries (the layout's bound)
+    levels: int  # instance levels (0: a primitive structure)
+    primitive_leaves: int  # leaves below this are primitives, the rest instances
+    options: KernelOptions
+    roots: bool  # each ray starts at its own root node (instanced scenes, batches of scenes)
+
+
+class KernelCall(NamedTuple):
+    """One launch, independent of how it is run (jax-triton on a GPU, or Triton's interpreter in tests)."""
+
+    kernel: str  # name of the kernel in :mod:`jaxrt._src.traversal.triton_kernel`
+    programs: int
+    args: tuple  # the kernel's inputs, arrays and ints, in parameter order
+    out_shape: tuple  # outputs (the results first, then scratch buffers that are never read back)
+    params: dict  # compile-time constants
 
 
 @functools.lru_cache(maxsize=1)
@@ -110,59 +153,85 @@ def unavailable_reason(intersector: Any) -> str | None:
     return _import_error()
 
 
-def _launch(
-    nodes: jax.Array,
-    triangles: jax.Array,
-    rays: jax.Array,
-    *,
-    any_hit: bool,
-    cull: int,
-    stack: int,
-    options: KernelOptions,
-) -> tuple[jax.Array, ...]:
-    """One kernel launch over a packed ray block ``(16, size)``: ``(distance, leaf, visited, tested, overflow)``."""
-    import jax_triton as jt
+def _level_shift(levels: int) -> int:
+    """Bits of a stack entry that hold its level below instances (the entry is ``entry << shift | level``)."""
+    return max(1, levels.bit_length())
 
-    from jaxrt._src.traversal import triton_kernel
 
+def _check_indices(nodes: int, instances: int, levels: int) -> None:
+    """Stack entries of an instanced scene keep their level in the low bits: the indices must leave room."""
+    limit = 1 << (31 - _level_shift(levels))
+    if levels and (nodes >= limit or instances >= limit):
+        raise ValueError(
+            f"traversal.gpu: {nodes} nodes and {instances} instances over {levels} levels exceed the kernel's "
+            f"index range ({limit}); trace this scene with the portable traversal"
+        )
+
+
+def kernel_call(nodes: jax.Array, triangles: jax.Array, instances: jax.Array, rays: jax.Array, config: _Config):
+    """The :class:`KernelCall` tracing the packed ``rays`` block through the packed scene."""
     size = rays.shape[1]
+    options = config.options
     lanes = options.rays_per_program
     programs = max(1, min(size // lanes, MAX_PROGRAMS))
-    if options.node_width == 4:
-        stack = packed.wide_stack_size(stack)
-        kernel, extra = triton_kernel.trace_wide_kernel, {}
-    else:
-        kernel, extra = triton_kernel.trace_kernel, dict(BRANCH=options.leaf_branch)
-    out_shape = [
-        jax.ShapeDtypeStruct((size,), jnp.float32),
-        jax.ShapeDtypeStruct((size,), jnp.int32),
-        jax.ShapeDtypeStruct((size,), jnp.int32),
-        jax.ShapeDtypeStruct((size,), jnp.int32),
-        jax.ShapeDtypeStruct((size,), jnp.int32),
-        jax.ShapeDtypeStruct((programs * stack * lanes,), jnp.int32),  # stack scratch, never read back
-    ]
-    out = jt.triton_call(
-        nodes,
-        triangles,
-        rays,
-        size,
-        programs,
-        kernel=kernel,
-        out_shape=out_shape,
-        grid=(programs,),
-        num_warps=1,
-        num_stages=1,
-        enable_fp_fusion=options.fp_fusion,
-        STACK=stack,
-        ANY_HIT=any_hit,
-        CULL=cull,
+    params = dict(
+        ANY_HIT=config.any_hit,
+        CULL=config.cull,
         FAR_SCALE=float(np.float32(box.FAR_SCALE)),
         PARALLEL=float(np.float32(box.PARALLEL_RECIPROCAL)),
         LANES=lanes,
         VECTOR=options.vector_loads,
-        **extra,
     )
-    return tuple(out[:5])
+    results = (
+        jax.ShapeDtypeStruct((size,), jnp.float32),  # distance
+        jax.ShapeDtypeStruct((size,), jnp.int32),  # leaf
+        jax.ShapeDtypeStruct((size,), jnp.int32),  # nodes visited
+        jax.ShapeDtypeStruct((size,), jnp.int32),  # primitives tested
+        jax.ShapeDtypeStruct((size,), jnp.int32),  # stack overflow
+    )
+    if options.node_width == 4:
+        stack = packed.wide_stack_size(config.stack)
+        scratch = (jax.ShapeDtypeStruct((programs * stack * lanes,), jnp.int32),)
+        params.update(STACK=stack)
+        return KernelCall("trace_wide_kernel", programs, (nodes, triangles, rays, size, programs), results + scratch, params)  # fmt: skip
+    levels = config.levels
+    clamp = np.float32(numerics.RECIPROCAL_CLAMP)
+    params.update(
+        STACK=config.stack,
+        BRANCH=options.leaf_branch,
+        LEVELS=levels,
+        ROOTS=config.roots,
+        SHIFT=_level_shift(levels),
+        CLAMP=float(clamp),
+        HUGE=float(np.float32(1.0 / numerics.RECIPROCAL_CLAMP)),
+        CLAMPED=float(np.float32(1.0) / clamp),
+    )
+    extra = (
+        jax.ShapeDtypeStruct((max(1, levels * size),), jnp.int32),  # instance chain, (levels, size)
+        jax.ShapeDtypeStruct((programs * config.stack * lanes,), jnp.int32),  # stack scratch
+        jax.ShapeDtypeStruct((max(1, programs * (levels + 1) * 8 * lanes),), jnp.float32),  # per-level rays
+    )
+    args = (nodes, triangles, instances, rays, size, programs, config.primitive_leaves)
+    return KernelCall("trace_kernel", programs, args, results + extra, params)
+
+
+def _launch(call: KernelCall) -> tuple[jax.Array, ...]:
+    """Run one :class:`KernelCall` through jax-triton: ``(distance, leaf, visited, tested, overflow[, chain])``."""
+    import jax_triton as jt
+
+    from jaxrt._src.traversal import triton_kernel
+
+    out = jt.triton_call(
+        *call.args,
+        kernel=getattr(triton_kernel, call.kernel),
+        out_shape=list(call.out_shape),
+        grid=(call.programs,),
+        num_warps=1,
+        num_stages=1,
+        enable_fp_fusion=False,
+        **call.params,
+    )
+    return tuple(out[:6] if call.kernel == "trace_kernel" else out[:5])
 
 
 def pack_nodes(options: KernelOptions, node_lower, node_upper, node_children, node_range) -> jax.Array:
@@ -172,88 +241,167 @@ def pack_nodes(options: KernelOptions, node_lower, node_upper, node_children, no
     return packed.pack_nodes(node_lower, node_upper, node_children)
 
 
-def _kernel(
-    node_lower,
-    node_upper,
-    node_children,
-    node_range,
-    leaf_triangle,
-    origin,
-    direction,
-    t_min,
-    t_max,
-    enabled,
-    *,
-    options,
-    **config,
-):
-    """Pack the structure and the rays, launch the kernel, and drop the padding rays."""
+def _kernel(*args, config: _Config) -> tuple[jax.Array, ...]:
+    """Pack the scene and the rays, launch the kernel, and drop the padding rays.
+
+    Returns ``(distance, leaf, instances (n, levels), visited, tested, overflow)``.
+    """
+    (node_lower, node_upper, node_children, node_range, leaf_triangle, world_to_object, child_root, facing,
+     instance_mask, origin, direction, t_min, t_max, enabled, mask, root) = args  # fmt: skip
     n = origin.shape[0]
-    lanes = options.rays_per_program
+    lanes = config.options.rays_per_program
     size = max(lanes, -(-n // lanes) * lanes)
-    nodes = pack_nodes(options, node_lower, node_upper, node_children, node_range)
+    nodes = pack_nodes(config.options, node_lower, node_upper, node_children, node_range)
     triangles = packed.pack_triangles(leaf_triangle)
-    rays = packed.pack_rays(origin, direction, t_min, t_max, enabled, size)
-    out = _launch(nodes, triangles, rays, options=options, **config)
-    return tuple(a[:n] for a in out)
-
-
-def _portable(
-    node_lower,
-    node_upper,
-    node_children,
-    node_range,
-    leaf_triangle,
-    origin,
-    direction,
-    t_min,
-    t_max,
-    enabled,
-    *,
-    any_hit,
-    cull,
-    stack,
-):
-    """The portable stack traversal over one structure (the fallback for batched structures)."""
-    from jaxrt._src.intersector import _TriangleLeaves
-
-    leaves = _TriangleLeaves(leaf_triangle, cull)
-    fn = functools.partial(traverse, node_lower, node_upper, node_children, leaves, any_hit=any_hit, stack_size=stack)
-    result = jax.vmap(fn)(origin, direction, t_min, t_max, enabled)
-    return (
-        result.distance,
-        result.leaf,
-        result.nodes_visited,
-        result.primitives_tested,
-        result.stack_overflow.astype(jnp.int32),
+    instances = packed.pack_instances(world_to_object, child_root, facing, instance_mask)
+    extended = config.levels > 0 or config.roots
+    rays = packed.pack_rays(
+        origin, direction, t_min, t_max, enabled, size, mask=mask if extended else None, root=root if extended else None
     )
+    out = _launch(kernel_call(nodes, triangles, instances, rays, config))
+    distance, leaf, visited, tested, overflow = (a[:n] for a in out[:5])
+    if config.levels and len(out) > 5:
+        chain = out[5][: config.levels * size].reshape(config.levels, size)[:, :n].T
+    else:
+        chain = jnp.zeros((n, config.levels), jnp.int32)
+    return distance, leaf, chain, visited, tested, overflow
+
+
+def _concatenate_scenes(scene: list[jax.Array], root: jax.Array) -> tuple[list[jax.Array], jax.Array, int, int]:
+    """``B`` scenes (leading axis) as one: node, leaf and instance indices moved by each scene's offsets.
+
+    Primitive leaves of scene ``b`` become ``b P + k``, its instances ``B P + b G + g`` (all primitive leaves
+    first, as the kernel expects), its nodes ``b M + i``. Returns the flat scene arrays, the flat roots
+    (``(B, n)`` to ``(B n,)``), ``P`` and ``G``.
+    """
+    (node_lower, node_upper, node_children, node_range, leaf_triangle, world_to_object, child_root, facing,
+     instance_mask) = scene  # fmt: skip
+    b, m = node_children.shape[:2]
+    p, g = leaf_triangle.shape[1], child_root.shape[1]
+    if b * max(m, 1) >= 2**31 or b * (p + g) >= 2**31:
+        raise ValueError(f"traversal.gpu: {b} scenes of {m} nodes and {p + g} leaves exceed int32 indices")
+    index = jnp.arange(b, dtype=jnp.int32)
+    k = -1 - node_children
+    shifted = jnp.where(k < p, k + index[:, None, None] * p, b * p + index[:, None, None] * g + (k - p))
+    children = jnp.where(node_children >= 0, node_children + index[:, None, None] * m, -1 - shifted)
+    flat = lambda a: a.reshape(-1, *a.shape[2:])  # noqa: E731
+    arrays = [node_lower, node_upper, children, node_range, leaf_triangle, world_to_object]
+    arrays += [child_root + index[:, None] * m, facing, instance_mask]
+    return [flat(a) for a in arrays], flat(root + index[:, None] * m), p, g
+
+
+def _batched_scenes(config: _Config, call_for, axis_size: int, in_batched, args):
+    """One launch over ``axis_size`` (rays, scene) pairs (the batching rule's case of batched scenes)."""
+    args = [a if b else jnp.broadcast_to(a, (axis_size, *a.shape)) for a, b in zip(args, in_batched, strict=True)]
+    scene, rays = args[:SCENE_ARGS], args[SCENE_ARGS:]
+    n = rays[0].shape[1]
+    flat_scene, flat_root, p, g = _concatenate_scenes(scene, rays[-1])
+    flat_rays = [a.reshape(axis_size * n, *a.shape[2:]) for a in rays[:-1]]
+    _check_indices(flat_scene[2].shape[0], axis_size * g, config.levels)
+    options = dataclasses.replace(config.options, node_width=2)
+    batched = dataclasses.replace(config, primitive_leaves=axis_size * p, options=options, roots=True)
+    distance, leaf, chain, visited, tested, overflow = call_for(batched)(*flat_scene, *flat_rays, flat_root)
+    index = jnp.arange(axis_size, dtype=jnp.int32)[:, None]
+    leaf = leaf.reshape(axis_size, n)
+    leaf = jnp.where(leaf >= 0, leaf - index * p, leaf)
+    chain = chain.reshape(axis_size, n, config.levels)
+    chain = jnp.where(chain >= 0, chain - index[..., None] * g, chain)
+    per_scene = lambda a: a.reshape(axis_size, n)  # noqa: E731
+    return per_scene(distance), leaf, chain, per_scene(visited), per_scene(tested), per_scene(overflow)
 
 
 @functools.cache
-def _traversal(any_hit: bool, cull: int, stack: int, options: KernelOptions):
+def _traversal(config: _Config):
     """The kernel call for one static configuration, with its batching rule."""
-    config = dict(any_hit=any_hit, cull=cull, stack=stack)
 
     @jax.custom_batching.custom_vmap
     def call(*args):
-        return _kernel(*args, options=options, **config)
+        return _kernel(*args, config=config)
 
     @call.def_vmap
     def rule(axis_size, in_batched, *args):
-        if any(in_batched[:STRUCTURE_ARGS]):
-            in_axes = [0 if b else None for b in in_batched]
-            fn = functools.partial(_portable, **config)
-            return jax.vmap(fn, in_axes=in_axes, axis_size=axis_size)(*args), (True,) * 5
-        structure_args, ray_args = args[:STRUCTURE_ARGS], args[STRUCTURE_ARGS:]
+        if any(in_batched[:SCENE_ARGS]):
+            return _batched_scenes(config, _traversal, axis_size, in_batched, args), (True,) * 6
+        scene, ray_args = args[:SCENE_ARGS], args[SCENE_ARGS:]
         rays = [
             a if b else jnp.broadcast_to(a, (axis_size, *a.shape))
-            for a, b in zip(ray_args, in_batched[STRUCTURE_ARGS:], strict=True)
+            for a, b in zip(ray_args, in_batched[SCENE_ARGS:], strict=True)
         ]
         n = rays[0].shape[1]
-        out = call(*structure_args, *(a.reshape(axis_size * n, *a.shape[2:]) for a in rays))
-        return tuple(a.reshape(axis_size, n) for a in out), (True,) * 5
+        out = call(*scene, *(a.reshape(axis_size * n, *a.shape[2:]) for a in rays))
+        return tuple(a.reshape(axis_size, n, *a.shape[1:]) for a in out), (True,) * 6
 
     return call
+
+
+def trace_scene(
+    scene: TraversalScene,
+    layout: TraversalLayout,
+    origin: jax.Array,
+    direction: jax.Array,
+    t_min: jax.Array,
+    t_max: jax.Array,
+    enabled: jax.Array,
+    mask: jax.Array,
+    *,
+    any_hit: bool,
+    cull: int,
+    options: KernelOptions | None = None,
+) -> TraversalResult:
+    """Trace rays through a scene of any instance depth with the GPU kernel.
+
+    Args:
+      scene: the global node arrays (:func:`jaxrt._src.scene_view.traversal_scene`), float32.
+      layout: its static layout (root, primitive leaves, levels, stack size).
+      origin, direction: ``(N, 3)`` world-space rays; a disabled ray must still have a non-zero direction.
+      t_min, t_max: ``(N,)`` accepted distance interval (world units at every level).
+      enabled: ``(N,)`` bool; disabled rays miss and take no step.
+      mask: ``(N,)`` uint32 ray masks; an instance is entered only where ``instance_mask & mask != 0``.
+      any_hit: stop at the first accepted hit.
+      cull: 0 culls nothing, +1 clockwise triangles, -1 counterclockwise ones; below instances the sense is
+        multiplied by the chain's ``instance_facing``.
+      options: code-generation choices (static); ``None`` takes :data:`DEFAULT_OPTIONS` at call time. Scenes
+        with instances are traced with the binary layout whatever ``node_width`` says.
+
+    Returns:
+      The portable traversal's :class:`~jaxrt._src.traversal.scene.TraversalResult`: the leaf (-1 on a miss),
+      its distance (the initial bound on a miss), the instance chain ``(N, levels)`` (global ids, outermost
+      first, -1 past it), nodes visited, primitives tested, and the stack overflow flag (never set: the stack
+      has the layout's bound).
+    """
+    options = options or DEFAULT_OPTIONS
+    levels = int(layout.levels)
+    if options.node_width == 4 and (levels or scene.node_range is None or layout.root != 0):
+        options = dataclasses.replace(options, node_width=2)
+    node_range = scene.node_range if options.node_width == 4 else jnp.zeros((1, 2), jnp.int32)
+    _check_indices(scene.node_children.shape[0], scene.instance_child_root.shape[0], levels)
+    config = _Config(
+        any_hit=bool(any_hit),
+        cull=int(cull),
+        stack=int(layout.stack_size),
+        levels=levels,
+        primitive_leaves=int(layout.primitive_leaves),
+        options=options,
+        roots=levels > 0 or layout.root != 0,
+    )
+    detached = lax.stop_gradient
+    args = (
+        detached(scene.node_lower),
+        detached(scene.node_upper),
+        scene.node_children,
+        node_range,
+        detached(scene.leaf_triangle),
+        detached(scene.instance_world_to_object),
+        scene.instance_child_root,
+        scene.instance_facing,
+        scene.instance_mask,
+        *(detached(a) for a in (origin, direction, t_min, t_max)),
+        enabled,
+        mask.astype(jnp.uint32),
+        jnp.full(origin.shape[:1], layout.root, jnp.int32),
+    )
+    distance, leaf, instances, visited, tested, overflow = _traversal(config)(*args)
+    return TraversalResult(distance, leaf, instances, visited, tested, overflow.astype(bool))
 
 
 def trace(
@@ -268,37 +416,15 @@ def trace(
     cull: int,
     options: KernelOptions | None = None,
 ) -> TraversalResult:
-    """Trace rays with the GPU kernel.
+    """:func:`trace_scene` for a :class:`~jaxrt.PrimitiveAccelerationStructure` (float32, triangles only),
+    every ray mask all ones."""
+    from jaxrt._src.scene_view import traversal_scene
 
-    Args:
-      structure: a :class:`~jaxrt.PrimitiveAccelerationStructure` (float32).
-      origin, direction: ``(N, 3)``; a disabled ray must still have a non-zero direction.
-      t_min, t_max: ``(N,)`` accepted distance interval.
-      enabled: ``(N,)`` bool; disabled rays miss and take no step.
-      any_hit: stop at the first accepted hit.
-      cull: 0 culls nothing, +1 clockwise triangles, -1 counterclockwise ones.
-      options: code-generation choices (static); ``None`` takes :data:`DEFAULT_OPTIONS` at call time.
-
-    Returns:
-      A :class:`~jaxrt._src.traversal.stack.TraversalResult` equal to the portable traversal's: the leaf
-      (-1 on a miss) and its distance (the initial bound on a miss), nodes visited, primitives tested, and
-      the stack overflow flag (never set: the stack has the structure's depth bound).
-    """
     kinds = sorted({g.kind for g in structure.geometry_info} - {"triangle"})
     if kinds:
         raise NotImplementedError(f"traversal.gpu.trace: geometry kinds {kinds} are not covered by the GPU kernel")
-    call = _traversal(bool(any_hit), int(cull), int(structure.max_depth), options or DEFAULT_OPTIONS)
-    args = (
-        structure.node_lower,
-        structure.node_upper,
-        structure.node_children,
-        structure.node_range,
-        structure.leaf_triangle,
-        origin,
-        direction,
-        t_min,
-        t_max,
-        enabled,
+    scene, layout = traversal_scene(structure)
+    mask = jnp.full(origin.shape[:1], 0xFFFFFFFF, jnp.uint32)
+    return trace_scene(
+        scene, layout, origin, direction, t_min, t_max, enabled, mask, any_hit=any_hit, cull=cull, options=options
     )
-    distance, leaf, visited, tested, overflow = call(*(lax.stop_gradient(a) for a in args))
-    return TraversalResult(distance, leaf, visited, tested, overflow.astype(bool))

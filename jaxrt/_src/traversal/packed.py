@@ -34,10 +34,18 @@ columns  contents
 Triangle row, ``(C, 12)`` float32, one per leaf: ``v0.x, v1.x, v2.x, 0, v0.y, v1.y, v2.y, 0, v0.z, v1.z,
 v2.z, 0``.
 
+Instance row, ``(G, 16)`` float32, one per instance of an instanced scene (read when a ray enters it):
+the world-to-object transform row by row (columns 0-11), then as int32 bits the global root node of its
+child (12), its facing in {-1, 0, +1} (13) and its mask (14, uint32 bits); column 15 is zero. A scene
+without instances has one zero row (the kernel never reads it).
+
 Ray block, ``(16, N)`` float32, one column per ray (rows are coalesced across the 32 rays of a program):
 origin (rows 0-2), the safe reciprocal direction (3-5), the watertight shear ``Sx, Sy, Sz`` (6-8), ``t_min``
 (9), the initial distance bound (10: ``t_max``, or ``-inf`` for a disabled ray, so that it never hits), the
-sheared axes ``kx, ky, kz`` as small integers (11-13), and 1 for an enabled ray, else 0 (14).
+sheared axes ``kx, ky, kz`` as small integers (11-13), and 1 for an enabled ray, else 0 (14). The extended
+block, ``(20, N)``, for instanced scenes and batches of scenes, adds the ray mask (row 15, uint32 bits),
+the ray's root node (16, int32 bits) and the direction (17-19), from which the kernel computes each
+level's ray.
 """
 
 from __future__ import annotations
@@ -61,6 +69,7 @@ __all__ = [
     "wide_node_capacity",
     "wide_stack_size",
     "pack_triangles",
+    "pack_instances",
     "pack_rays",
 ]
 
@@ -69,7 +78,10 @@ WIDE_NODE_WIDTH = 32
 #: Most leaves in one leaf cluster of the wide layout (the count is stored in two bits).
 MAX_LEAF_SIZE = 4
 TRIANGLE_WIDTH = 12
+INSTANCE_WIDTH = 16
 RAY_ROWS = 16
+#: Rows of the extended ray block (ray mask, root node and direction added).
+EXTENDED_RAY_ROWS = 20
 
 
 def pack_nodes(node_lower: jax.Array, node_upper: jax.Array, node_children: jax.Array) -> jax.Array:
@@ -177,10 +189,41 @@ def pack_triangles(leaf_triangle: jax.Array) -> jax.Array:
     return jnp.pad(per_axis, ((0, 0), (0, 0), (0, 1))).reshape(c, TRIANGLE_WIDTH)
 
 
+def pack_instances(world_to_object: jax.Array, child_root: jax.Array, facing: jax.Array, mask: jax.Array) -> jax.Array:
+    """The ``(max(G, 1), 16)`` float32 instance rows (layout in the module docstring)."""
+    g = child_root.shape[0]
+    ints = jnp.stack(
+        [
+            child_root.astype(jnp.int32),
+            facing.astype(jnp.int32),
+            lax.bitcast_convert_type(mask.astype(jnp.uint32), jnp.int32),
+        ],
+        axis=-1,
+    )
+    rows = jnp.concatenate(
+        [
+            world_to_object.astype(jnp.float32).reshape(g, 12),
+            lax.bitcast_convert_type(ints, jnp.float32),
+            jnp.zeros((g, 1), jnp.float32),
+        ],
+        axis=-1,
+    )
+    return rows if g else jnp.zeros((1, INSTANCE_WIDTH), jnp.float32)
+
+
 def pack_rays(
-    origin: jax.Array, direction: jax.Array, t_min: jax.Array, t_max: jax.Array, enabled: jax.Array, size: int
+    origin: jax.Array,
+    direction: jax.Array,
+    t_min: jax.Array,
+    t_max: jax.Array,
+    enabled: jax.Array,
+    size: int,
+    *,
+    mask: jax.Array | None = None,
+    root: jax.Array | None = None,
 ) -> jax.Array:
-    """The ``(16, size)`` float32 ray block; columns past the ray count are disabled rays.
+    """The ``(16, size)`` float32 ray block, or the extended ``(20, size)`` one when ``mask`` and ``root`` are
+    given; columns past the ray count are disabled rays.
 
     The per-ray constants are computed here with the same functions as the portable traversal, so both
     paths start from bit-identical values.
@@ -190,18 +233,23 @@ def pack_rays(
     sheared = jax.vmap(triangle.shear_ray)(origin, direction)
     axes = jnp.stack([sheared.kx, sheared.ky, sheared.kz], axis=-1).astype(jnp.float32)
     bound = jnp.where(enabled, t_max, -jnp.inf)
+    if mask is None or root is None:
+        extra = [jnp.zeros((n, 1), jnp.float32)]
+    else:
+        bits = jnp.stack([lax.bitcast_convert_type(mask.astype(jnp.uint32), jnp.int32), root.astype(jnp.int32)], -1)
+        extra = [lax.bitcast_convert_type(bits, jnp.float32), direction.astype(jnp.float32)]
     columns = jnp.concatenate(
         [
-            origin,
-            inv_direction,
-            sheared.shear,
-            t_min[:, None],
-            bound[:, None],
+            origin.astype(jnp.float32),
+            inv_direction.astype(jnp.float32),
+            sheared.shear.astype(jnp.float32),
+            t_min[:, None].astype(jnp.float32),
+            bound[:, None].astype(jnp.float32),
             axes,
             enabled[:, None].astype(jnp.float32),
-            jnp.zeros((n, 1), jnp.float32),
+            *extra,
         ],
         axis=-1,
-    ).astype(jnp.float32)
+    )
     columns = jnp.pad(columns, ((0, size - n), (0, 0)))
     return columns.T

@@ -94,11 +94,17 @@ def _triangle(
     sz,
     t_min,
     t_max,
+    facing,
     CULL: tl.constexpr,
     LANES: tl.constexpr,
     VECTOR: tl.constexpr,
+    LEVELS: tl.constexpr,
 ):
-    """Watertight test of leaf triangles: ``(hit, distance)``, the distance ``inf`` where not hit."""
+    """Watertight test of leaf triangles: ``(hit, distance)``, the distance ``inf`` where not hit.
+
+    Below instances (``LEVELS > 0``) the cull sense is ``facing * CULL`` per lane: the product of the
+    instance chain's winding flips (or 0 where an instance disables culling) times the intersector's.
+    """
     ax, bx, cx, _ = _quad(tris_ptr, leaf, 12, 0, mask, LANES, VECTOR)
     ay, by, cy, _ = _quad(tris_ptr, leaf, 12, 4, mask, LANES, VECTOR)
     az, bz, cz, _ = _quad(tris_ptr, leaf, 12, 8, mask, LANES, VECTOR)
@@ -119,7 +125,11 @@ def _triangle(
     positive = (e0 > 0) | (e1 > 0) | (e2 > 0)
     det = e0 + e1 + e2
     inside = ((negative & positive) == 0) & (det != 0)
-    if CULL == 1:
+    if LEVELS > 0:
+        if CULL != 0:
+            sense = facing * CULL
+            inside = inside & ((sense <= 0) | (det >= 0)) & ((sense >= 0) | (det < 0))
+    elif CULL == 1:
         inside = inside & (det >= 0)
     elif CULL == -1:
         inside = inside & (det < 0)
@@ -243,18 +253,208 @@ def _advance(stack_base, active, enter, node, depth, leaf, done, ANY_HIT: tl.con
 
 
 @triton.jit
+def _classify(inst_ptr, child, hit, n_primitives, ray_mask):
+    """Sort a hit child of an instanced scene: ``(test, inner, entry)``.
+
+    ``test``: a primitive leaf to test now; ``inner``: an inner node or an instance visible to the ray (mask
+    AND), to enter or push; ``entry``: the node, or ``-1 - g`` for instance ``g``.
+    """
+    is_leaf = child < 0
+    k = -1 - child
+    primitive = is_leaf & (k < n_primitives)
+    instance = is_leaf & (k >= n_primitives)
+    g = k - n_primitives
+    bits = tl.load(inst_ptr + g * 16 + 14, mask=hit & instance, other=0.0).to(tl.int32, bitcast=True)
+    inner = hit & ((child >= 0) | (instance & ((bits & ray_mask) != 0)))
+    return hit & primitive, inner, tl.where(instance, -1 - g, child)
+
+
+@triton.jit
+def _record_chain(chain_ptr, level_base, n_rays, ray, found, level, LEVELS: tl.constexpr, LANES: tl.constexpr):
+    """Write the instance chain of the current path as the hit's chain where ``found`` (-1 past its length)."""
+    for index in tl.static_range(LEVELS):
+        on_path = found & (level > index)
+        g = tl.load(level_base + (index * 8 + 7) * LANES, mask=on_path, other=0.0).to(tl.int32, bitcast=True)
+        tl.store(chain_ptr + index * n_rays + ray, tl.where(on_path, g, -1), mask=found)
+
+
+@triton.jit
+def _advance_levels(
+    stack_base,
+    active,
+    inner0,
+    inner1,
+    entry0,
+    entry1,
+    near,
+    far,
+    node,
+    level,
+    depth,
+    overflow,
+    leaf,
+    done,
+    STACK: tl.constexpr,
+    ANY_HIT: tl.constexpr,
+    LANES: tl.constexpr,
+    SHIFT: tl.constexpr,
+):
+    """Push the farther entry where both are entered, then enter the next entry or pop one; instance entries
+    (negative) are entries too, so the stack holds ``entry << SHIFT | level``. Returns
+    ``(node, level, depth, overflow, done)``."""
+    both = inner0 & inner1
+    push = both & (depth < STACK)
+    tl.store(stack_base + depth * LANES, (far << SHIFT) | level, mask=push)
+    overflow = overflow | (both & (depth >= STACK)).to(tl.int32)
+    depth = depth + push.to(tl.int32)
+    pop = active & (inner0 == 0) & (inner1 == 0)
+    nonempty = depth > 0
+    top = tl.load(stack_base + (depth - 1) * LANES, mask=pop & nonempty, other=0)
+    next_entry = tl.where(both, near, tl.where(pop, top >> SHIFT, tl.where(inner0, entry0, entry1)))
+    next_level = tl.where(pop, top & ((1 << SHIFT) - 1), level)
+    depth = tl.where(pop & nonempty, depth - 1, depth)
+    finished = pop & (nonempty == 0)
+    if ANY_HIT:
+        finished = finished | (active & (leaf >= 0))
+    go = active & (finished == 0)
+    node = tl.where(go, next_entry, node)
+    level = tl.where(go, next_level, level)
+    return node, level, depth, overflow, tl.where(finished, 1, done)
+
+
+@triton.jit
+def _safe_reciprocal(x, CLAMP: tl.constexpr, HUGE: tl.constexpr, CLAMPED: tl.constexpr):
+    """``jaxrt._src.numerics.safe_reciprocal`` in float32: ``|x|`` clamped to ``[CLAMP, HUGE]``, sign kept."""
+    negative = x.to(tl.int32, bitcast=True) < 0
+    magnitude = tl.abs(x)
+    x = tl.where(magnitude < CLAMP, tl.where(negative, -CLAMP, CLAMP), x)
+    x = tl.where(magnitude > HUGE, tl.where(negative, -CLAMPED, CLAMPED), x)
+    return tl.math.div_rn(tl.full(x.shape, 1.0, tl.float32), x)
+
+
+@triton.jit
+def _shear(dx, dy, dz):
+    """``jaxrt._src.primitives.triangle.shear_ray``: sheared axes ``(kx, ky, kz)`` and shear ``(Sx, Sy, Sz)``."""
+    ax = tl.abs(dx)
+    ay = tl.abs(dy)
+    az = tl.abs(dz)
+    kz = tl.where(ax >= ay, tl.where(ax >= az, 0, 2), tl.where(ay >= az, 1, 2))
+    kx = (kz + 1) % 3
+    ky = (kx + 1) % 3
+    d_z = _select(kz, dx, dy, dz)
+    swap = d_z < 0
+    kx, ky = tl.where(swap, ky, kx), tl.where(swap, kx, ky)
+    safe = tl.where(d_z == 0, 1.0, d_z)
+    sx = tl.math.div_rn(_select(kx, dx, dy, dz), safe)
+    sy = tl.math.div_rn(_select(ky, dx, dy, dz), safe)
+    sz = tl.math.div_rn(tl.full(safe.shape, 1.0, tl.float32), safe)
+    return kx, ky, kz, sx, sy, sz
+
+
+@triton.jit
+def _transition(
+    inst_ptr,
+    level_base,
+    need,
+    node,
+    level,
+    ray_level,
+    ray,
+    LANES: tl.constexpr,
+    VECTOR: tl.constexpr,
+    CLAMP: tl.constexpr,
+    HUGE: tl.constexpr,
+    CLAMPED: tl.constexpr,
+):
+    """Load the ray of the next entry's level and, where the entry is an instance, enter it (the portable
+    ``step.transition``). ``ray`` is ``(ox, oy, oz, dx, dy, dz, facing, ix, iy, iz, kx, ky, kz, sx, sy, sz)``;
+    returns ``(node, level, ray_level, ray)``."""
+    ox, oy, oz, dx, dy, dz, facing, ix, iy, iz, kx, ky, kz, sx, sy, sz = ray
+    # The saved ray of level ``level`` (slot ``level``: origin, direction, facing, instance entered there).
+    reload = need & (level != ray_level)
+    slot = level_base + level * (8 * LANES)
+    bx = tl.where(reload, tl.load(slot, mask=reload, other=0.0), ox)
+    by = tl.where(reload, tl.load(slot + LANES, mask=reload, other=0.0), oy)
+    bz = tl.where(reload, tl.load(slot + 2 * LANES, mask=reload, other=0.0), oz)
+    bdx = tl.where(reload, tl.load(slot + 3 * LANES, mask=reload, other=0.0), dx)
+    bdy = tl.where(reload, tl.load(slot + 4 * LANES, mask=reload, other=0.0), dy)
+    bdz = tl.where(reload, tl.load(slot + 5 * LANES, mask=reload, other=0.0), dz)
+    bf = tl.where(reload, tl.load(slot + 6 * LANES, mask=reload, other=0.0).to(tl.int32, bitcast=True), facing)
+    # Entering instance g: world-to-object rows, child root and facing (one 64-byte row).
+    entering = need & (node < 0)
+    g = -1 - node
+    m00, m01, m02, m03 = _quad(inst_ptr, g, 16, 0, entering, LANES, VECTOR)
+    m10, m11, m12, m13 = _quad(inst_ptr, g, 16, 4, entering, LANES, VECTOR)
+    m20, m21, m22, m23 = _quad(inst_ptr, g, 16, 8, entering, LANES, VECTOR)
+    root_bits, facing_bits, _, _ = _quad(inst_ptr, g, 16, 12, entering, LANES, VECTOR)
+    nx = ((m00 * bx + m01 * by) + m02 * bz) + m03
+    ny = ((m10 * bx + m11 * by) + m12 * bz) + m13
+    nz = ((m20 * bx + m21 * by) + m22 * bz) + m23
+    ndx = (m00 * bdx + m01 * bdy) + m02 * bdz
+    ndy = (m10 * bdx + m11 * bdy) + m12 * bdz
+    ndz = (m20 * bdx + m21 * bdy) + m22 * bdz
+    nf = bf * facing_bits.to(tl.int32, bitcast=True)
+    inner_slot = slot + 8 * LANES
+    tl.store(inner_slot, nx, mask=entering)
+    tl.store(inner_slot + LANES, ny, mask=entering)
+    tl.store(inner_slot + 2 * LANES, nz, mask=entering)
+    tl.store(inner_slot + 3 * LANES, ndx, mask=entering)
+    tl.store(inner_slot + 4 * LANES, ndy, mask=entering)
+    tl.store(inner_slot + 5 * LANES, ndz, mask=entering)
+    tl.store(inner_slot + 6 * LANES, nf.to(tl.float32, bitcast=True), mask=entering)
+    tl.store(slot + 7 * LANES, g.to(tl.float32, bitcast=True), mask=entering)
+    ox = tl.where(entering, nx, bx)
+    oy = tl.where(entering, ny, by)
+    oz = tl.where(entering, nz, bz)
+    dx = tl.where(entering, ndx, bdx)
+    dy = tl.where(entering, ndy, bdy)
+    dz = tl.where(entering, ndz, bdz)
+    facing = tl.where(entering, nf, bf)
+    level = tl.where(entering, level + 1, level)
+    node = tl.where(entering, root_bits.to(tl.int32, bitcast=True), node)
+    ray_level = tl.where(need, level, ray_level)
+    # Per-ray constants of the loaded ray, computed as the portable path's ``prepare`` does.
+    new_kx, new_ky, new_kz, new_sx, new_sy, new_sz = _shear(dx, dy, dz)
+    ix = tl.where(need, _safe_reciprocal(dx, CLAMP, HUGE, CLAMPED), ix)
+    iy = tl.where(need, _safe_reciprocal(dy, CLAMP, HUGE, CLAMPED), iy)
+    iz = tl.where(need, _safe_reciprocal(dz, CLAMP, HUGE, CLAMPED), iz)
+    kx = tl.where(need, new_kx, kx)
+    ky = tl.where(need, new_ky, ky)
+    kz = tl.where(need, new_kz, kz)
+    sx = tl.where(need, new_sx, sx)
+    sy = tl.where(need, new_sy, sy)
+    sz = tl.where(need, new_sz, sz)
+    return node, level, ray_level, (ox, oy, oz, dx, dy, dz, facing, ix, iy, iz, kx, ky, kz, sx, sy, sz)
+
+
+@triton.jit
+def _save_level_ray(slot, ox, oy, oz, dx, dy, dz, facing, LANES: tl.constexpr):
+    tl.store(slot, ox)
+    tl.store(slot + LANES, oy)
+    tl.store(slot + 2 * LANES, oz)
+    tl.store(slot + 3 * LANES, dx)
+    tl.store(slot + 4 * LANES, dy)
+    tl.store(slot + 5 * LANES, dz)
+    tl.store(slot + 6 * LANES, facing.to(tl.float32, bitcast=True))
+
+
+@triton.jit
 def trace_kernel(
     nodes_ptr,
     tris_ptr,
+    inst_ptr,
     rays_ptr,
     n_rays,
     n_programs,
+    n_primitives,
     distance_ptr,
     leaf_ptr,
     visited_ptr,
     tested_ptr,
     overflow_ptr,
+    chain_ptr,
     stack_ptr,
+    level_ptr,
     STACK: tl.constexpr,
     ANY_HIT: tl.constexpr,
     CULL: tl.constexpr,
@@ -263,23 +463,55 @@ def trace_kernel(
     LANES: tl.constexpr,
     VECTOR: tl.constexpr,
     BRANCH: tl.constexpr,
+    LEVELS: tl.constexpr,
+    ROOTS: tl.constexpr,
+    SHIFT: tl.constexpr,
+    CLAMP: tl.constexpr,
+    HUGE: tl.constexpr,
+    CLAMPED: tl.constexpr,
 ):
-    """Trace ``n_rays`` rays (a multiple of ``LANES``); outputs as :class:`~jaxrt._src.traversal.stack.TraversalResult`."""
+    """Trace ``n_rays`` rays (a multiple of ``LANES``); outputs as :class:`~jaxrt._src.traversal.scene.TraversalResult`.
+
+    ``LEVELS = 0`` traces a primitive structure (the instance arguments are not read and compile to nothing).
+    With ``LEVELS > 0`` a leaf ``k >= n_primitives`` is instance ``k - n_primitives``: it is ordered and pushed
+    like an inner node when its mask meets the ray's, and entering it moves the ray into the child's space
+    (the portable ``step.visit`` and ``step.transition``). Per lane, ``level_ptr`` keeps each level's ray and
+    the instance entered there (``[program, level, field, lane]``), and ``chain_ptr`` (``(LEVELS, n_rays)``)
+    receives the hit's instance chain. ``ROOTS``: each ray starts at its own root node (ray block row 16).
+    """
     pid = tl.program_id(0)
     lane = tl.arange(0, LANES)
     stack_base = stack_ptr + pid * (STACK * LANES) + lane
+    if LEVELS > 0:
+        level_base = level_ptr + pid * ((LEVELS + 1) * 8 * LANES) + lane
     block = pid
     while block < n_rays // LANES:
         ray = block * LANES + lane
         ox, oy, oz, ix, iy, iz, sx, sy, sz, t_min, kx, ky, kz, okx, oky, okz, distance, done = _load_ray(
             rays_ptr, n_rays, ray
         )
-        node = tl.zeros((LANES,), tl.int32)
+        if ROOTS:
+            node = tl.load(rays_ptr + 16 * n_rays + ray).to(tl.int32, bitcast=True)
+        else:
+            node = tl.zeros((LANES,), tl.int32)
         depth = tl.zeros((LANES,), tl.int32)
         leaf = tl.full((LANES,), -1, tl.int32)
         visited = tl.zeros((LANES,), tl.int32)
         tested = tl.zeros((LANES,), tl.int32)
         overflow = tl.zeros((LANES,), tl.int32)
+        if LEVELS > 0:
+            ray_mask = tl.load(rays_ptr + 15 * n_rays + ray).to(tl.int32, bitcast=True)
+            dx = tl.load(rays_ptr + 17 * n_rays + ray)
+            dy = tl.load(rays_ptr + 18 * n_rays + ray)
+            dz = tl.load(rays_ptr + 19 * n_rays + ray)
+            facing = tl.full((LANES,), 1, tl.int32)
+            level = tl.zeros((LANES,), tl.int32)
+            ray_level = tl.zeros((LANES,), tl.int32)
+            _save_level_ray(level_base, ox, oy, oz, dx, dy, dz, facing, LANES)
+            for index in tl.static_range(LEVELS):
+                tl.store(chain_ptr + index * n_rays + ray, tl.full((LANES,), -1, tl.int32))
+        else:
+            facing = 1
         # One warp reduction per step: bit 0 / 1, some lane tests leaf child 0 / 1; bit 2, some lane was
         # active when the step began. The loop therefore ends one (fully masked, no-op) step after the last ray.
         go = tl.max(1 - done, axis=0)
@@ -299,10 +531,12 @@ def trace_kernel(
             )
             hit0 = hit0 & active
             hit1 = hit1 & active
-            is_leaf0 = c0 < 0
-            is_leaf1 = c1 < 0
-            test0 = hit0 & is_leaf0
-            test1 = hit1 & is_leaf1
+            if LEVELS > 0:
+                test0, inner0, entry0 = _classify(inst_ptr, c0, hit0, n_primitives, ray_mask)
+                test1, inner1, entry1 = _classify(inst_ptr, c1, hit1, n_primitives, ray_mask)
+            else:
+                test0 = hit0 & (c0 < 0)
+                test1 = hit1 & (c1 < 0)
             # Both leaves are tested against the distance bound before this step, as in the portable path.
             h0 = tl.zeros((LANES,), tl.int1)
             h1 = tl.zeros((LANES,), tl.int1)
@@ -313,108 +547,55 @@ def trace_kernel(
             if BRANCH:
                 # Skip a leaf test that no lane of the warp needs (a warp-uniform branch).
                 if (votes & 1) != 0:
-                    h0, t0 = _triangle(
-                        tris_ptr,
-                        -1 - c0,
-                        test0,
-                        kx,
-                        ky,
-                        kz,
-                        okx,
-                        oky,
-                        okz,
-                        sx,
-                        sy,
-                        sz,
-                        t_min,
-                        distance,
-                        CULL,
-                        LANES,
-                        VECTOR,
-                    )
+                    h0, t0 = _triangle(tris_ptr, -1 - c0, test0, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, CULL, LANES, VECTOR, LEVELS)  # fmt: skip
                 if (votes & 2) != 0:
-                    h1, t1 = _triangle(
-                        tris_ptr,
-                        -1 - c1,
-                        test1,
-                        kx,
-                        ky,
-                        kz,
-                        okx,
-                        oky,
-                        okz,
-                        sx,
-                        sy,
-                        sz,
-                        t_min,
-                        distance,
-                        CULL,
-                        LANES,
-                        VECTOR,
-                    )
+                    h1, t1 = _triangle(tris_ptr, -1 - c1, test1, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, CULL, LANES, VECTOR, LEVELS)  # fmt: skip
             else:
-                h0, t0 = _triangle(
-                    tris_ptr,
-                    -1 - c0,
-                    test0,
-                    kx,
-                    ky,
-                    kz,
-                    okx,
-                    oky,
-                    okz,
-                    sx,
-                    sy,
-                    sz,
-                    t_min,
-                    distance,
-                    CULL,
-                    LANES,
-                    VECTOR,
-                )
-                h1, t1 = _triangle(
-                    tris_ptr,
-                    -1 - c1,
-                    test1,
-                    kx,
-                    ky,
-                    kz,
-                    okx,
-                    oky,
-                    okz,
-                    sx,
-                    sy,
-                    sz,
-                    t_min,
-                    distance,
-                    CULL,
-                    LANES,
-                    VECTOR,
-                )
+                h0, t0 = _triangle(tris_ptr, -1 - c0, test0, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, CULL, LANES, VECTOR, LEVELS)  # fmt: skip
+                h1, t1 = _triangle(tris_ptr, -1 - c1, test1, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, CULL, LANES, VECTOR, LEVELS)  # fmt: skip
             second = t1 < t0
             best_t = tl.where(second, t1, t0)
             best_leaf = tl.where(second, -1 - c1, -1 - c0)
-            distance, leaf = _keep_nearer(h0 | h1, best_t, best_leaf, distance, leaf)
-
-            inner0 = hit0 & (c0 >= 0)
-            inner1 = hit1 & (c1 >= 0)
             near_first = near0 <= near1
-            near = tl.where(near_first, c0, c1)
-            far = tl.where(near_first, c1, c0)
-            both = inner0 & inner1
-            depth, overflow = _push(stack_base, depth, overflow, tl.where(both, far, -1), STACK, LANES)
-            enter = tl.where(both, near, tl.where(inner0, c0, tl.where(inner1, c1, -1)))
-            node, depth, done = _advance(stack_base, active, enter, node, depth, leaf, done, ANY_HIT, LANES)
+            if LEVELS > 0:
+                found = (h0 | h1) & ((best_t < distance) | ((leaf < 0) & (best_t <= distance)))
+                distance = tl.where(found, best_t, distance)
+                leaf = tl.where(found, best_leaf, leaf)
+                _record_chain(chain_ptr, level_base, n_rays, ray, found, level, LEVELS, LANES)
+                near = tl.where(near_first, entry0, entry1)
+                far = tl.where(near_first, entry1, entry0)
+                node, level, depth, overflow, done = _advance_levels(
+                    stack_base, active, inner0, inner1, entry0, entry1, near, far, node, level, depth, overflow,
+                    leaf, done, STACK, ANY_HIT, LANES, SHIFT,
+                )  # fmt: skip
+            else:
+                distance, leaf = _keep_nearer(h0 | h1, best_t, best_leaf, distance, leaf)
+                inner0 = hit0 & (c0 >= 0)
+                inner1 = hit1 & (c1 >= 0)
+                near = tl.where(near_first, c0, c1)
+                far = tl.where(near_first, c1, c0)
+                both = inner0 & inner1
+                depth, overflow = _push(stack_base, depth, overflow, tl.where(both, far, -1), STACK, LANES)
+                enter = tl.where(both, near, tl.where(inner0, c0, tl.where(inner1, c1, -1)))
+                node, depth, done = _advance(stack_base, active, enter, node, depth, leaf, done, ANY_HIT, LANES)
             visited = visited + active.to(tl.int32)
             tested = tested + test0.to(tl.int32) + test1.to(tl.int32)
+            if LEVELS > 0:
+                # Entering an instance, or returning to a shallower level: a warp-uniform branch.
+                need = (done == 0) & ((node < 0) | (level != ray_level))
+                if tl.max(need.to(tl.int32), axis=0) > 0:
+                    node, level, ray_level, moved = _transition(
+                        inst_ptr, level_base, need, node, level, ray_level,
+                        (ox, oy, oz, dx, dy, dz, facing, ix, iy, iz, kx, ky, kz, sx, sy, sz),
+                        LANES, VECTOR, CLAMP, HUGE, CLAMPED,
+                    )  # fmt: skip
+                    ox, oy, oz, dx, dy, dz, facing, ix, iy, iz, kx, ky, kz, sx, sy, sz = moved
+                    okx = _select(kx, ox, oy, oz)
+                    oky = _select(ky, ox, oy, oz)
+                    okz = _select(kz, ox, oy, oz)
 
         _store_result(distance_ptr, leaf_ptr, visited_ptr, tested_ptr, overflow_ptr, ray, distance, leaf, visited, tested, overflow)  # fmt: skip
         block += n_programs
-
-
-def compiled_options() -> dict:
-    """Launch options used for the kernel: one warp per program, no floating-point contraction."""
-    return dict(num_warps=1, num_stages=1, enable_fp_fusion=False)
 
 
 @triton.jit
@@ -459,7 +640,7 @@ def _leaf_cluster(
     for j in range(longest):
         mask = test & (j < count)
         hit, t = _triangle(
-            tris_ptr, first + j, mask, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, CULL, LANES, VECTOR
+            tris_ptr, first + j, mask, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, 1, CULL, LANES, VECTOR, 0
         )
         distance, leaf = _keep_nearer(hit, t, first + j, distance, leaf)
         tested = tested + mask.to(tl.int32)
