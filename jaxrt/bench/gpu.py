@@ -196,19 +196,25 @@ def _agreement(a: np.ndarray, b: np.ndarray) -> dict[str, int]:
 
 def _bench_kernel(structure, rays: dict[str, jax.Array], any_hit: bool, options: gpu.KernelOptions, repeats: int):
     """Kernel-only timing on pre-packed arrays; returns (seconds, pipelined seconds, leaf array)."""
+    from jaxrt._src.scene_view import traversal_scene
+
     n = rays["origin"].shape[0]
     size = -(-n // options.rays_per_program) * options.rays_per_program
-    nodes = gpu.pack_nodes(
-        options, structure.node_lower, structure.node_upper, structure.node_children, structure.node_range
+    scene, layout = traversal_scene(structure)
+    nodes = gpu.pack_nodes(options, scene.node_lower, scene.node_upper, scene.node_children, scene.node_range)
+    triangles = packed.pack_triangles(scene.leaf_triangle)
+    instances = packed.pack_instances(
+        scene.instance_world_to_object, scene.instance_child_root, scene.instance_facing, scene.instance_mask
     )
-    triangles = packed.pack_triangles(structure.leaf_triangle)
     block = packed.pack_rays(rays["origin"], rays["direction"], rays["t_min"], rays["t_max"], rays["enabled"], size)
-    launch = jax.jit(
-        lambda nd, tr, rb: gpu._launch(nd, tr, rb, any_hit=any_hit, cull=0, stack=structure.max_depth, options=options)
-    )
-    out = jax.block_until_ready(launch(nodes, triangles, block))
-    seconds = _median_s(lambda: launch(nodes, triangles, block), repeats)
-    pipelined = _pipelined_s(lambda: launch(nodes, triangles, block), 20)
+    config = gpu._Config(
+        any_hit=any_hit, cull=0, stack=layout.stack_size, levels=0, primitive_leaves=layout.primitive_leaves,
+        options=options, roots=False,
+    )  # fmt: skip
+    launch = jax.jit(lambda nd, tr, ins, rb: gpu._launch(gpu.kernel_call(nd, tr, ins, rb, config)))
+    out = jax.block_until_ready(launch(nodes, triangles, instances, block))
+    seconds = _median_s(lambda: launch(nodes, triangles, instances, block), repeats)
+    pipelined = _pipelined_s(lambda: launch(nodes, triangles, instances, block), 20)
     return seconds, pipelined, np.asarray(out[1])[:n], np.asarray(out[2])[:n]
 
 

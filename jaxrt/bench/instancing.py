@@ -14,8 +14,12 @@ scene           structure
 
 Reported: stored bytes of each structure (the arrays of its pytree), build time (all builds of a structure,
 warm median), trace speed (Mrays/s, closest hit, pinhole camera over the island) and how many rays agree
-with the flattened trace. Batched scenes: ``jax.vmap`` of the builds and of ``intersect`` over many small
-random forests, each traced by its own depth camera (scenes x rays per second).
+with the flattened trace. Each structure is traced by ``Intersector.intersect`` (the ``path`` column says
+whether its compiled program launches the GPU kernel or runs the portable traversal) and, where the kernel
+can run, by the kernel alone (``traversal.gpu.trace_scene`` on the structure's scene view: the leaf, its
+distance and the instance chain, no result fields), with the mean nodes visited per ray and the kernel's
+scratch memory (stack and per-level rays). Batched scenes: ``jax.vmap`` of the builds, of ``intersect`` and of
+the kernel over many small random forests, each traced by its own depth camera (scenes x rays per second).
 
 Flags: ``--quick`` (small sizes, one repeat), ``--json PATH``, ``--repeats``, ``--rays``, ``--trees``,
 ``--leaves``, ``--terrain``, ``--scenes`` (batched scenes), ``--max-flat`` (skip the flattened build above this
@@ -40,7 +44,7 @@ import numpy as np
 import jaxrt as rt
 from jaxrt.bench.timing import timed
 
-__all__ = ["main", "island", "tree_meshes", "batched_forests"]
+__all__ = ["main", "island", "tree_meshes", "batched_forests", "kernel_tracer", "compiled_path"]
 
 _DEFAULTS = dict(
     terrain=512, trunk=16, leaves=512, grove_trees=64, groves=256, variants=4, rays=1 << 20, scenes=1024,
@@ -326,6 +330,55 @@ def depth_camera_rays(scenes: int, side: int, seed: int = 2) -> rt.Ray:
     return rt.Ray(origin.reshape(scenes, -1, 3).astype(np.float32), direction.reshape(scenes, -1, 3).astype(np.float32))
 
 
+# --- the GPU kernel ---------------------------------------------------------------------------------------------
+
+
+def compiled_path(fn: Any, *args: Any) -> str:
+    """``"kernel"`` when the program of ``fn(*args)`` launches the GPU kernel, else ``"portable"``."""
+    return "kernel" if "triton_kernel_call" in str(jax.make_jaxpr(fn)(*args)) else "portable"
+
+
+def kernel_tracer(any_hit: bool = False) -> Any:
+    """``trace(structure, rays)`` through ``traversal.gpu.trace_scene`` (rays of any batch shape, flattened), or
+    ``None`` where the kernel cannot run (no GPU, or no Triton)."""
+    from jaxrt._src.scene_view import traversal_scene
+    from jaxrt._src.traversal import gpu
+
+    if gpu.unavailable_reason(rt.Intersector(rt.tags.instancing)) is not None:
+        return None
+
+    def trace(structure, rays: rt.Ray):
+        scene, layout = traversal_scene(structure)
+        flat = lambda a: a.reshape(-1, *a.shape[rays.min_distance.ndim :])  # noqa: E731
+        origin, direction = flat(rays.origin), flat(rays.direction)
+        t_min, t_max = flat(jnp.broadcast_to(rays.min_distance, rays.shape)), flat(rays.max_distance)
+        mask = flat(jnp.broadcast_to(rays.mask, rays.shape)).astype(jnp.uint32)
+        enabled = jnp.any(direction != 0, axis=-1) & (t_min <= t_max) & (mask != 0)
+        return gpu.trace_scene(scene, layout, origin, direction, t_min, t_max, enabled, mask, any_hit=any_hit, cull=0)
+
+    return trace
+
+
+def kernel_scratch_bytes(structure: Any, rays: int) -> int:
+    """Bytes of the kernel's scratch buffers for ``rays`` rays (stack, per-level rays and instance chains)."""
+    from jaxrt._src.scene_view import traversal_scene
+    from jaxrt._src.traversal import gpu
+
+    _, layout = traversal_scene(structure)
+    lanes = gpu.DEFAULT_OPTIONS.rays_per_program
+    programs = max(1, min(-(-rays // lanes), gpu.MAX_PROGRAMS))
+    per_lane = layout.stack_size + (8 * (layout.levels + 1) if layout.levels else 0)
+    return 4 * (programs * lanes * per_lane + layout.levels * rays)
+
+
+def _agreement(hit: Any, distance: Any, reference: Any) -> float:
+    """Fraction of rays whose hit or miss, and distance where both hit, match the reference ``intersect``."""
+    want = reference.type != 0
+    same = hit == want
+    close = jnp.abs(distance - reference.distance) <= 1e-3 * jnp.maximum(1.0, reference.distance)
+    return float(jnp.mean(same & (close | ~(hit & want))))
+
+
 # --- the run ----------------------------------------------------------------------------------------------------
 
 
@@ -408,7 +461,22 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         "2 levels": (lambda: _build_two_levels(scene, build_meshes()), 2),
         "3 levels": (lambda: _build_three_levels(scene, build_meshes()), 3),
     }
-    flat = None
+    flat = reference = None
+    kernel = kernel_tracer()
+    kernel_fn = None if kernel is None else jax.jit(kernel)
+
+    def kernel_entry(structure, base: dict[str, Any]) -> dict[str, Any]:
+        timing, found = timed(lambda: kernel_fn(structure, rays), repeats)
+        entry = dict(
+            base, trace=timing.as_dict(n_rays), path="kernel", scratch_bytes=kernel_scratch_bytes(structure, n_rays)
+        )
+        hit = found.leaf >= 0
+        entry["hit_fraction"] = float(jnp.mean(hit))
+        entry["nodes_visited_mean"] = float(jnp.mean(found.nodes_visited))
+        if reference is not None:
+            entry["agree_with_flattened"] = _agreement(hit, found.distance.reshape(reference.distance.shape), reference)
+        return entry
+
     if virtual <= sizes["max_flat"]:
         triangles = _flat_triangles(scene)
         geometry = rt.TriangleGeometry(jnp.asarray(triangles.reshape(-1, 3)))
@@ -423,8 +491,12 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                 "build": build_timing.as_dict(),
                 "trace": trace_timing.as_dict(n_rays),
                 "hit_fraction": float(jnp.mean(hit.type != 0)),
+                "path": compiled_path(intersector.intersect, rays, flat),
             }
-        reference = hit
+            if backend == "auto":
+                reference = hit
+        if kernel_fn is not None:
+            results["flattened (kernel)"] = kernel_entry(flat, {"bytes": nbytes(flat), "build": build_timing.as_dict()})
     for name, (build, levels) in builders.items():
         build_timing, structure = timed(build, repeats)
         intersector = rt.Intersector(rt.tags.instancing, rt.tags.max_levels(levels))
@@ -434,13 +506,13 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             "build": build_timing.as_dict(),
             "trace": trace_timing.as_dict(n_rays),
             "hit_fraction": float(jnp.mean(hit.type != 0)),
+            "path": compiled_path(intersector.intersect, rays, structure),
         }
-        if flat is not None:
-            same = (hit.type != 0) == (reference.type != 0)
-            both = (hit.type != 0) & (reference.type != 0)
-            close = jnp.abs(hit.distance - reference.distance) <= 1e-3 * jnp.maximum(1.0, reference.distance)
-            entry["agree_with_flattened"] = float(jnp.mean(same & (close | ~both)))
+        if reference is not None:
+            entry["agree_with_flattened"] = _agreement(hit.type != 0, hit.distance, reference)
         results[name] = entry
+        if kernel_fn is not None:
+            results[f"{name} (kernel)"] = kernel_entry(structure, {"bytes": entry["bytes"], "build": entry["build"]})
 
     # Many scenes at once: vmapped builds and a vmapped intersect over (rays, structure) pairs.
     scenes, side = sizes["scenes"], sizes["scene_rays"]
@@ -455,7 +527,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
 
     depth = rt.Intersector(rt.tags.instancing)
     batch_build, batch = timed(lambda: build_batch(ground, crown, instances), repeats)
-    batch_trace, batch_hit = timed(lambda: jax.vmap(depth.intersect)(camera, batch), repeats)
+    batch_intersect = jax.jit(jax.vmap(depth.intersect))
+    batch_trace, batch_hit = timed(lambda: batch_intersect(camera, batch), repeats)
     scene_rays = scenes * side * side
     batched = {
         "scenes": scenes,
@@ -465,7 +538,20 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         "trace": batch_trace.as_dict(scene_rays),
         "scene_rays_per_s": scene_rays / batch_trace.median_s,
         "hit_fraction": float(jnp.mean(batch_hit.type != 0)),
+        "path": compiled_path(jax.vmap(depth.intersect), camera, batch),
     }
+    if kernel is not None:
+        batch_kernel = jax.jit(jax.vmap(kernel))
+        kernel_timing, found = timed(lambda: batch_kernel(batch, camera), repeats)
+        hit = found.leaf >= 0
+        same = (hit == (batch_hit.type != 0)) & (~hit | (jnp.abs(found.distance - batch_hit.distance) <= 1e-4))
+        batched["kernel"] = {
+            "trace": kernel_timing.as_dict(scene_rays),
+            "scene_rays_per_s": scene_rays / kernel_timing.median_s,
+            "hit_fraction": float(jnp.mean(hit)),
+            "agree_with_intersect": float(jnp.mean(same)),
+            "launches": str(jax.make_jaxpr(jax.vmap(kernel))(batch, camera)).count("triton_kernel_call"),
+        }
 
     config = dict(sizes, rays=n_rays, quick=bool(args.quick))
     out = {"machine": machine, "config": config, "scene": info, "results": results, "batched": batched}
@@ -489,20 +575,31 @@ def _print(out: dict[str, Any]) -> None:
         f"terrain {info['terrain_triangles']:,}), {info['stored_triangles']:,} stored; {out['config']['rays']:,} camera rays"
     )
     print(
-        f"  {'structure':22s} {'MB':>9s} {'build ms':>9s} {'trace ms':>9s} {'Mrays/s':>8s} {'hit':>6s} {'agree':>6s} {'compile s':>9s}"
+        f"  {'structure':22s} {'path':>8s} {'MB':>9s} {'build ms':>9s} {'trace ms':>9s} {'Mrays/s':>8s} {'hit':>6s} "
+        f"{'agree':>6s} {'visited':>7s} {'scratch MB':>10s} {'compile s':>9s}"
     )
     for name, entry in results.items():
         agree = entry.get("agree_with_flattened")
+        visited = entry.get("nodes_visited_mean")
+        scratch = entry.get("scratch_bytes")
         print(
-            f"  {name:22s} {entry['bytes'] / 1e6:9.2f} {entry['build']['median_s'] * 1e3:9.1f} "
+            f"  {name:22s} {entry.get('path', '-'):>8s} {entry['bytes'] / 1e6:9.2f} {entry['build']['median_s'] * 1e3:9.1f} "
             f"{entry['trace']['median_s'] * 1e3:9.1f} {entry['trace']['mrays_s']:8.3f} {entry['hit_fraction']:6.3f} "
-            f"{'-' if agree is None else f'{agree:.4f}':>6s} {entry['trace']['compile_s']:9.1f}"
+            f"{'-' if agree is None else f'{agree:.4f}':>6s} {'-' if visited is None else f'{visited:.1f}':>7s} "
+            f"{'-' if scratch is None else f'{scratch / 1e6:.1f}':>10s} {entry['trace']['compile_s']:9.1f}"
         )
     print(
         f"batched: {batched['scenes']:,} scenes x {batched['rays_per_scene']:,} rays ({batched['triangles_per_scene']} "
-        f"triangles each, 2 levels): build {batched['build']['median_s'] * 1e3:.1f} ms, trace "
+        f"triangles each, 2 levels): build {batched['build']['median_s'] * 1e3:.1f} ms, intersect ({batched['path']}) "
         f"{batched['trace']['median_s'] * 1e3:.1f} ms = {batched['scene_rays_per_s'] / 1e6:.3f} M scene-rays/s"
     )
+    kernel = batched.get("kernel")
+    if kernel:
+        print(
+            f"batched kernel ({kernel['launches']} launch): {kernel['trace']['median_s'] * 1e3:.2f} ms = "
+            f"{kernel['scene_rays_per_s'] / 1e6:.1f} M scene-rays/s, hit {kernel['hit_fraction']:.3f}, "
+            f"agrees with intersect on {kernel['agree_with_intersect']:.4f}"
+        )
 
 
 if __name__ == "__main__":
