@@ -222,7 +222,9 @@ def check(case: Case, n: int) -> None:
         "another primitive than the clear nearest": (e.nearest >= 0) & (got != e.nearest),
         "distance off": (e.nearest >= 0) & (got == e.nearest) & ~(error <= e.tolerance),
     }
-    report = [f"{name}: {int(bad.sum())} rays, first {np.flatnonzero(bad)[:5]}" for name, bad in problems.items() if bad.any()]
+    report = [
+        f"{name}: {int(bad.sum())} rays, first {np.flatnonzero(bad)[:5]}" for name, bad in problems.items() if bad.any()
+    ]
     assert not report, f"{n} rays: " + "; ".join(report)
     # The check has teeth: most rays have a clear answer and many of them hit.
     assert np.mean(e.nearest >= 0) > 0.2 and np.mean(e.certain | ~e.possible) > 0.8
