@@ -15,6 +15,7 @@ from jaxrt._src import versions as _versions  # noqa: F401
 # isort: split
 from jaxrt import intersection_functions, io, shading, tags
 from jaxrt._src.candidate import BoundingBoxCandidate, TriangleCandidate
+from jaxrt._src.checks import BuildCheckError
 from jaxrt._src.curves import CurveBasis, CurveEndCaps, CurveGeometry, CurveType
 from jaxrt._src.geometry import BoundingBoxGeometry, TriangleGeometry
 from jaxrt._src.instances import (
@@ -35,6 +36,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "BoundingBoxCandidate",
+    "BuildCheckError",
     "BoundingBoxGeometry",
     "CurveBasis",
     "CurveEndCaps",

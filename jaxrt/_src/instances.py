@@ -559,6 +559,7 @@ def build_instance_structure(
     *,
     count: Any = None,
     motion: Any = None,
+    checks: bool = False,
 ) -> InstanceAccelerationStructure:
     """Build an instance structure: an LBVH over the world-space boxes of ``instances``.
 
@@ -574,6 +575,10 @@ def build_instance_structure(
         skipped. A Python int or a (possibly traced) int32 scalar; changing only its value does not recompile.
         ``None`` means all.
       motion: keyframe motion; not supported yet (must be ``None``).
+      checks: also check traced inputs (non-finite or singular transforms and structure indices out of range
+        among the ``count`` existing instances), which are checked only when concrete otherwise: a
+        :class:`~jaxrt._src.checks.BuildCheckError` (inside ``jit``, a ``jax.errors.JaxRuntimeError``
+        carrying its message). Costs a host synchronisation per build (:mod:`jaxrt._src.checks`).
 
     Returns:
       An :class:`InstanceAccelerationStructure`. Transforms keep their gradient connection (boxes do not), so
@@ -619,6 +624,10 @@ def build_instance_structure(
             )
     n = instances.count
     count = _count(count, n)
+    if checks:
+        from jaxrt._src.checks import check_instances
+
+        check_instances(instances, len(structures), count, SINGULAR_TOLERANCE, owner)
 
     merger = _Merger()
     refs = tuple(merger.add(s) for s in structures)

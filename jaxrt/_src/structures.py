@@ -286,6 +286,7 @@ def build_primitive_structure(
     motion: Any = None,
     capacity: int | None = None,
     quality: str = "fast",
+    checks: bool = False,
 ) -> PrimitiveAccelerationStructure:
     """Build an LBVH over one or more geometries (jitted; also callable on traced arrays inside ``jax.jit``).
 
@@ -302,6 +303,10 @@ def build_primitive_structure(
         :mod:`jaxrt._src.bvh.ploc`): a lower SAH cost at 3 to 10 times the build time; faster to trace where
         triangle sizes vary a lot (building interiors), about as fast on evenly tessellated meshes
         (docs/performance.md). Same node layout either way.
+      checks: also check traced inputs (non-finite coordinates, negative radii, inverted boxes, indices out
+        of range), which constructors check only when concrete: a :class:`~jaxrt._src.checks.BuildCheckError`
+        (inside ``jit``, a ``jax.errors.JaxRuntimeError`` carrying its message) instead of silent misses.
+        Costs a host synchronisation per build (:mod:`jaxrt._src.checks`).
 
     Returns:
       A :class:`PrimitiveAccelerationStructure`. Leaf vertices keep their gradient connection to the
@@ -318,6 +323,10 @@ def build_primitive_structure(
     if quality not in QUALITIES:
         raise ValueError(f"build_primitive_structure: quality must be one of {QUALITIES}, got {quality!r}")
     geometries = _as_geometry_tuple(geometries)
+    if checks:
+        from jaxrt._src.checks import check_geometries
+
+        check_geometries(geometries, "build_primitive_structure")
     total = sum(g.primitive_count for g in geometries)
     return _build_jit(geometries, capacity_bucket(total, capacity), quality)
 
