@@ -464,9 +464,8 @@ def curve_configuration(infos: tuple[CurveInfo, ...], curve_type: CurveType | No
 
 
 class CurveLeaves:
-    """Ray/curve tests of BVH leaves (a :class:`~jaxrt._src.traversal.stack.LeafTester`, and an
-    :class:`~jaxrt._src.traversal.instanced.InstancedLeafTester`: curves have no facing, so the per-level
-    ``facing`` of an instanced traversal is ignored)."""
+    """Ray/curve tests of BVH leaves (a :class:`~jaxrt._src.traversal.step.LeafTester`; curves have no
+    facing, so the per-level ``facing`` of a traversal below instances is ignored)."""
 
     def __init__(self, leaf_curve: jax.Array, leaf_flags: jax.Array, curve_types, end_caps, options):
         self.leaf_curve = leaf_curve
@@ -488,43 +487,20 @@ class CurveLeaves:
         return hit.hit & (leaves >= 0), hit.distance
 
 
-class MixedLeaves:
-    """Triangle and curve leaves in one structure (or scene): both tests, selected by each leaf's kind.
-
-    In an instanced traversal ``prepare`` also receives the level's ``facing``, which goes to the triangles.
-    """
-
-    def __init__(self, triangles: Any, curves: CurveLeaves):
-        self.triangles = triangles
-        self.curves = curves
-
-    def prepare(self, origin, direction, *facing):
-        return self.triangles.prepare(origin, direction, *facing), self.curves.prepare(origin, direction)
-
-    def __call__(self, context, leaves, t_min, t_max):
-        from jaxrt._src.primitives import curve as primitive
-
-        triangle_hit, triangle_t = self.triangles(context[0], leaves, t_min, t_max)
-        curve_hit, curve_t = self.curves(context[1], leaves, t_min, t_max)
-        is_curve = (self.curves.leaf_flags[jnp.maximum(leaves, 0)] & primitive.IS_CURVE) != 0
-        return jnp.where(is_curve, curve_hit, triangle_hit), jnp.where(is_curve, curve_t, triangle_t)
-
-
-def curve_hit_fields(structure, leaf, hit, origin, direction, t_min, t_max, distance, config):
+def curve_hit_fields(leaf_curve, leaf_curve_flags, leaf, hit, origin, direction, t_min, t_max, distance, config):
     """For every ray, whether its hit is a curve, and that hit's differentiable ``(distance, u)``.
 
-    ``structure`` is anything with ``leaf_curve`` and ``leaf_curve_flags`` indexed by ``leaf``: a primitive
-    structure, or an instanced scene's concatenated arrays (then ``origin`` and ``direction`` are the ray in
-    the hit instance's object space). The traversal only picks the leaf: the chosen segment is tested again
+    ``leaf_curve`` and ``leaf_curve_flags`` are a scene's global curve leaves indexed by ``leaf``; ``origin``
+    and ``direction`` are the ray in the hit's object space. The traversal only picks the leaf: the chosen segment is tested again
     (exactly, for ``u``), then :func:`jaxrt._src.primitives.curve.smooth_hit` attaches derivatives with
     respect to the segment's control points and radii and to the ray, keeping the exact values.
     """
     from jaxrt._src.primitives import curve as primitive
 
     stop = jax.lax.stop_gradient
-    flags = structure.leaf_curve_flags[leaf]
+    flags = leaf_curve_flags[leaf]
     is_curve = hit & ((flags & primitive.IS_CURVE) != 0)
-    segment = structure.leaf_curve[leaf]
+    segment = leaf_curve[leaf]
     # Lanes without a curve hit get a dummy segment and ray (no NaN in their zero gradients).
     dummy = jnp.zeros((6, 4), segment.dtype).at[:4, 0].set(jnp.array([0.0, 1 / 3, 2 / 3, 1.0])).at[:4, 3].set(0.5)
     segment = jnp.where(is_curve[:, None, None], segment, dummy)

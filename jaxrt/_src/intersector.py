@@ -1,26 +1,23 @@
-"""The intersector: static tags and options, the traversal it compiles, and result assembly."""
+"""The intersector: static tags and options, and their validation against a structure (Metal's ``intersector``).
+
+Tracing itself is :mod:`jaxrt._src.pipeline`; this module holds configuration only."""
 
 from __future__ import annotations
 
-import functools
 from typing import Any
 
 import jax
 import jax.numpy as jnp
-from jax import lax
 
 from jaxrt import tags as tag_module
 from jaxrt._src import curves as curve_support
-from jaxrt._src import custom_leaves as custom
-from jaxrt._src import intersect_instances as instancing
+from jaxrt._src import pipeline
+from jaxrt._src.candidate import BoundingBoxCandidate, TriangleCandidate
 from jaxrt._src.instances import InstanceAccelerationStructure
-from jaxrt._src.numerics import full_precision
-from jaxrt._src.primitive_data import data_at
-from jaxrt._src.primitives import triangle
 from jaxrt._src.ray import Ray
 from jaxrt._src.result import IntersectionResult, IntersectionType
+from jaxrt._src.scene_view import primitive_structures
 from jaxrt._src.structures import PrimitiveAccelerationStructure
-from jaxrt._src.traversal.stack import traverse, traverse_refill
 
 __all__ = ["Intersector", "count_intersections"]
 
@@ -45,42 +42,6 @@ _GEOMETRY_TYPES = {
 _CULL_MODES = ("none", "front", "back")
 _WINDINGS = ("clockwise", "counterclockwise")
 _BACKENDS = ("auto", "portable", "gpu")
-#: Rays per traversal batch. Batches run one after another; on the CPU a batch that stays in cache is faster.
-CPU_CHUNK = 1 << 16
-GPU_CHUNK = 1 << 22
-#: "refill" (a fixed window of lanes refilled from the ray queue) or "vmap" (a vmapped while_loop per ray);
-#: both run the same per-ray step and give identical results.
-PORTABLE_DRIVER = "refill"
-#: Rays in flight in the refill driver (chosen by measurement on a 2-core CPU: 512, 2048, 8192 lanes).
-REFILL_LANES = 2048
-#: On a GPU a step over few lanes is all launch overhead: keep many rays in flight.
-GPU_REFILL_LANES = 1 << 18
-#: Rays per compiled intersection call. Larger batches are traced in sequential chunks of this many rays
-#: (``lax.map``), so that the temporaries of packing, traversal and result assembly stay per chunk (by a count
-#: of the arrays, at most about 200 bytes per ray: 3.4 GB at 2**24); the rays, one padded copy of them and the
-#: result are per batch. Measured on an H200: 100M rays in one call peaked at 14.3 GB (docs/performance.md).
-INTERSECT_CHUNK = 1 << 24
-
-
-class _TriangleLeaves:
-    """Watertight triangle tests of BVH leaves (a :class:`~jaxrt._src.traversal.stack.LeafTester`)."""
-
-    def __init__(self, leaf_triangle: jax.Array, cull: int):
-        self.leaf_triangle = leaf_triangle
-        self.cull = cull
-
-    def prepare(self, origin, direction):
-        return triangle.shear_ray(origin, direction)
-
-    def __call__(self, context, leaves, t_min, t_max):
-        hit = triangle.watertight(context, t_min, t_max, self.leaf_triangle[jnp.maximum(leaves, 0)], self.cull)
-        return hit.hit & (leaves >= 0), hit.distance
-
-
-def _ray_bucket(n: int) -> int:
-    return 1 << max(0, (max(n, 1) - 1).bit_length())
-
-
 class Intersector:
     """Intersects rays with acceleration structures (Metal's ``intersector``).
 
@@ -152,7 +113,7 @@ class Intersector:
                 raise ValueError(f"Intersector: unknown tag {tag!r}; tags come from jaxrt.tags")
             if tag.name not in _SUPPORTED_TAGS:
                 raise NotImplementedError(f"Intersector: tags.{tag.name} is not supported in this version")
-        instancing.check_tags(tags)
+        _check_tags(tags)
         if triangle_cull_mode not in _CULL_MODES:
             raise ValueError(
                 f"Intersector: triangle_cull_mode must be one of {_CULL_MODES}, got {triangle_cull_mode!r}"
@@ -188,15 +149,18 @@ class Intersector:
             if accept_any_intersection:
                 raise ValueError("Intersector: max_hits and accept_any_intersection exclude each other")
         self.max_hits = max_hits
-        self._count_all = False  # set by count_intersections
         self.tags = tuple(sorted(set(tags)))
         self.accept_any_intersection = accept_any_intersection
         self.triangle_cull_mode = triangle_cull_mode
         self.front_facing_winding = front_facing_winding
         self.backend = backend
 
+    #: Whether the intersector only counts hits (:func:`count_intersections`).
+    counts_all = False
+
     def _key(self):
         return (
+            type(self),
             self.tags,
             self.accept_any_intersection,
             self.triangle_cull_mode,
@@ -210,7 +174,7 @@ class Intersector:
             self.intersection_functions,
             self.filter,
             self.max_hits,
-            self._count_all,
+            self.counts_all,
         )
 
     def __hash__(self) -> int:
@@ -232,7 +196,15 @@ class Intersector:
         return any(t.name == name for t in self.tags)
 
     @property
-    def _cull(self) -> int:
+    def max_levels(self) -> int:
+        """Instance levels handled: the ``max_levels(n)`` tag, 1 with ``instancing`` alone, else 0."""
+        if not self.has("instancing"):
+            return 0
+        values = [t.value for t in self.tags if t.name == "max_levels"]
+        return int(values[0]) if values else 1
+
+    @property
+    def cull(self) -> int:
         """+1 culls clockwise triangles, -1 counterclockwise ones, 0 none."""
         if self.triangle_cull_mode == "none":
             return 0
@@ -261,32 +233,16 @@ class Intersector:
             raise TypeError(
                 f"Intersector.intersect: structure must be an acceleration structure, got {type(structure).__name__}"
             )
-        instancing.check_levels(self, structure)  # instance nesting deeper than the tags handle
-        _check_instanced_options(self, structure)
+        _check_levels(self, structure)
         _check_geometry(self, structure)
-        _resolve_backend(self)  # raises early, outside jit, when the GPU backend is forced but unavailable
-        shape = rays.shape
-        flat = rays.reshape(-1)
-        n = flat.origin.shape[0]
-        chunk = INTERSECT_CHUNK
-        padded = _ray_bucket(n) if n <= chunk else -(-n // chunk) * chunk
-        if padded != n:
-            flat = jax.tree_util.tree_map(
-                lambda a: jnp.concatenate([a, jnp.zeros((padded - n, *a.shape[1:]), a.dtype)]), flat
-            )
-        if padded <= chunk:
-            result = _intersect_jit(self, flat, structure)
-        else:
-            result = _intersect_chunks(self, flat, structure, chunk)
-        return jax.tree_util.tree_map(lambda a: a[:n].reshape(*shape, *a.shape[1:]), result)
+        pipeline.resolve_backend(self)  # raises early, outside jit, when the GPU backend is forced but unavailable
+        return pipeline.intersect(self, rays, structure)
 
 
-@functools.partial(jax.jit, static_argnums=(0, 3))
-def _intersect_chunks(intersector: Intersector, rays: Ray, structure: Any, chunk: int) -> IntersectionResult:
-    """``_intersect_jit`` over sequential chunks of ``chunk`` rays (the ray count is a multiple of it)."""
-    split = jax.tree_util.tree_map(lambda a: a.reshape(-1, chunk, *a.shape[1:]), rays)
-    out = lax.map(lambda r: _intersect_jit(intersector, r, structure), split)
-    return jax.tree_util.tree_map(lambda a: a.reshape(-1, *a.shape[2:]), out)
+class _CountingIntersector(Intersector):
+    """An intersector that counts every accepted hit (:func:`count_intersections`)."""
+
+    counts_all = True
 
 
 def _functions(value: Any) -> tuple[tuple[int, Any], ...] | None:
@@ -305,7 +261,9 @@ def _functions(value: Any) -> tuple[tuple[int, Any], ...] | None:
     return tuple(sorted(value.items(), key=lambda item: item[0]))
 
 
-def count_intersections(rays: Ray, structure: PrimitiveAccelerationStructure, intersector: Intersector | None = None):
+def count_intersections(
+    rays: Ray, structure: PrimitiveAccelerationStructure | InstanceAccelerationStructure, intersector: Any = None
+) -> jax.Array:
     """The number of accepted hits along each ray (no culling: every primitive the ray crosses in its interval).
 
     Useful for inside/outside parity tests and depth complexity. ``intersector`` supplies cull mode,
@@ -322,35 +280,26 @@ def count_intersections(rays: Ray, structure: PrimitiveAccelerationStructure, in
       >>> int(rt.count_intersections(rt.Ray([.2, .2, -1], [0., 0, 1]), s))
       1
     """
-    import copy
-
     base = Intersector() if intersector is None else intersector
     if not isinstance(base, Intersector):
         raise TypeError(f"count_intersections: intersector must be an rt.Intersector, got {type(base).__name__}")
     if base.max_hits is not None or base.accept_any_intersection:
         raise ValueError("count_intersections: the intersector must not set max_hits or accept_any_intersection")
-    counting = copy.copy(base)
-    counting.tags = ()
-    counting._count_all = True
-    return counting.intersect(rays, structure).hit_count
-
-
-def _check_instanced_options(intersector: Intersector, structure: Any) -> None:
-    """Options the instanced traversal does not provide yet: a ``NotImplementedError`` naming them."""
-    if not isinstance(structure, InstanceAccelerationStructure):
-        return
-    options = dict(
-        max_hits=intersector.max_hits is not None,
-        count_intersections=intersector._count_all,
-        filter=intersector.filter is not None,
-        intersection_functions=intersector.intersection_functions is not None,
-        primitive_data=intersector.has("primitive_data"),
+    counting = _CountingIntersector(
+        *(t for t in base.tags if t.name in ("instancing", "max_levels")),
+        accept_any_intersection=False,
+        triangle_cull_mode=base.triangle_cull_mode,
+        front_facing_winding=base.front_facing_winding,
+        backend=base.backend,
+        geometry_types=base.geometry_types,
+        curve_basis=base.curve_basis,
+        curve_type=base.curve_type,
+        curve_control_point_count=base.curve_control_point_count,
+        intersection_functions=dict(base.intersection_functions or {}) or None,
+        filter=base.filter,
+        curve_options=base.curve_options,
     )
-    used = [name for name, on in options.items() if on]
-    if any(s.leaf_box is not None for s in structure.primitive_structures):
-        used.append("bounding-box geometry")
-    if used:
-        raise NotImplementedError(f"Intersector.intersect: {', '.join(used)} below instances are not supported yet")
+    return counting.intersect(rays, structure).hit_count
 
 
 def _geometry_types(value: Any) -> tuple[str, ...] | None:
@@ -370,273 +319,130 @@ def _geometry_types(value: Any) -> tuple[str, ...] | None:
     return tuple(sorted(kinds))
 
 
-def _check_geometry(intersector: Intersector, structure: Any) -> None:
-    """The structure's kinds and curves against the intersector's declarations (and what it can trace)."""
-    if isinstance(structure, InstanceAccelerationStructure):
-        for primitive_structure in structure.primitive_structures:
-            _check_geometry(intersector, primitive_structure)
+def _check_tags(tags: tuple) -> None:
+    """Tags that only make sense with ``instancing`` raise without it."""
+    names = {t.name for t in tags}
+    levels = [t for t in tags if t.name == "max_levels"]
+    if len(levels) > 1:
+        raise ValueError(f"Intersector: give tags.max_levels once, got {[t.value for t in levels]}")
+    if "instancing" not in names:
+        for name in ("max_levels", "world_space_data", "user_instance_id"):
+            if name in names:
+                raise ValueError(f"Intersector: tags.{name} needs tags.instancing")
+
+
+def _check_levels(intersector: Intersector, structure: Any) -> None:
+    """Raise when ``structure`` nests instances deeper than the intersector handles, naming both depths."""
+    depth = structure.levels
+    handled = intersector.max_levels
+    if depth <= handled:
         return
-    kinds = {g.kind for g in structure.geometry_info}
-    if intersector.backend == "gpu" and _gpu_declines(intersector, structure):
-        raise ValueError(f"Intersector: backend='gpu' cannot run: {_gpu_declines(intersector, structure)}")
-    custom.check_user_functions(intersector, structure)
-    if intersector.has("primitive_data") and structure.leaf_primitive_data is None:
+    if handled == 0:
+        raise ValueError(
+            f"Intersector.intersect: the structure has {depth} instance level(s) but the intersector has no "
+            f"tags.instancing and handles 0; add tags.instancing and tags.max_levels({depth})"
+        )
+    raise ValueError(
+        f"Intersector.intersect: the structure is nested {depth} instance levels deep, deeper than the "
+        f"intersector's tags.max_levels({handled}); use tags.max_levels({depth})"
+    )
+
+
+def _check_geometry(intersector: Intersector, structure: Any) -> None:
+    """The structure's kinds, curves and user functions against the intersector's declarations."""
+    prims = primitive_structures(structure)
+    if intersector.backend == "gpu":
+        reason = pipeline.kernel_declines(intersector, tuple(g for s in prims for g in s.geometry_info))
+        if reason:
+            raise ValueError(f"Intersector: backend='gpu' cannot run: {reason}")
+    _check_user_functions(intersector, prims)
+    if intersector.has("primitive_data") and all(s.leaf_primitive_data is None for s in prims):
         raise ValueError(
             "Intersector.intersect: tags.primitive_data needs a structure built from geometries with primitive_data"
         )
-    if intersector.geometry_types is not None and not kinds <= set(intersector.geometry_types):
-        raise ValueError(
-            f"Intersector.intersect: the structure holds geometry kinds {sorted(kinds)}, but the intersector "
-            f"declares geometry_types={list(intersector.geometry_types)}"
-        )
-    for index, info in enumerate(structure.geometry_info):
-        if info.curve is None:
-            continue
-        declared = dict(
-            curve_basis=(intersector.curve_basis, info.curve.basis),
-            curve_type=(intersector.curve_type, info.curve.curve_type),
-            curve_control_point_count=(intersector.curve_control_point_count, info.curve.control_point_count),
-        )
-        for name, (want, have) in declared.items():
-            if want is not None and want != have:
-                raise ValueError(
-                    f"Intersector.intersect: geometry {index} has {name}={getattr(have, 'value', have)!r}, but "
-                    f"the intersector declares {name}={getattr(want, 'value', want)!r}"
-                )
+    for s in prims:
+        kinds = {g.kind for g in s.geometry_info}
+        if intersector.geometry_types is not None and not kinds <= set(intersector.geometry_types):
+            raise ValueError(
+                f"Intersector.intersect: the structure holds geometry kinds {sorted(kinds)}, but the intersector "
+                f"declares geometry_types={list(intersector.geometry_types)}"
+            )
+        for index, info in enumerate(s.geometry_info):
+            if info.curve is None:
+                continue
+            declared = dict(
+                curve_basis=(intersector.curve_basis, info.curve.basis),
+                curve_type=(intersector.curve_type, info.curve.curve_type),
+                curve_control_point_count=(intersector.curve_control_point_count, info.curve.control_point_count),
+            )
+            for name, (want, have) in declared.items():
+                if want is not None and want != have:
+                    raise ValueError(
+                        f"Intersector.intersect: geometry {index} has {name}={getattr(have, 'value', have)!r}, but "
+                        f"the intersector declares {name}={getattr(want, 'value', want)!r}"
+                    )
 
 
-def _curve_config(intersector: Intersector, structure: PrimitiveAccelerationStructure):
-    infos = tuple(g.curve for g in structure.geometry_info if g.curve is not None)
-    return curve_support.curve_configuration(infos, intersector.curve_type, intersector.curve_options)
+def _abstract_call(fn: Any, dtype, candidate: Any) -> Any:
+    """The output shapes of ``fn(ray, candidate)`` for one abstract ray (traced, not run)."""
+    scalar = jax.ShapeDtypeStruct((), dtype)
+    vector = jax.ShapeDtypeStruct((3,), dtype)
+    return jax.eval_shape(lambda o, d, a, b, c: fn(Ray(o, d, a, b), c), vector, vector, scalar, scalar, candidate)
 
 
-def _gpu_declines(intersector: Intersector, structure: PrimitiveAccelerationStructure) -> str | None:
-    """Why the GPU kernel does not cover this structure with this intersector (``None`` when it does)."""
-    if structure.leaf_curve is not None:
-        return "curves are not covered by the GPU kernel"
-    if structure.leaf_box is not None:
-        return "bounding-box geometry (intersection functions) is not covered by the GPU kernel"
-    if custom.filtered_geometries(intersector, structure):
-        return "filters on non-opaque geometry are not covered by the GPU kernel"
-    if intersector.max_hits is not None or intersector._count_all:
-        return "multi-hit (max_hits) and counting are not covered by the GPU kernel"
-    return None
+def _is_scalar(x: Any) -> bool:
+    return hasattr(x, "shape") and tuple(x.shape) == ()
 
 
-def _resolve_backend(intersector: Intersector) -> str:
-    """``"portable"`` or ``"gpu"``: which traversal runs for this intersector on the default JAX backend."""
-    if intersector.backend == "portable":
-        return "portable"
-    from jaxrt._src.traversal import gpu
+def _check_user_functions(intersector: Intersector, prims: tuple[PrimitiveAccelerationStructure, ...]) -> None:
+    """Host-side checks of intersection functions and the filter (named errors).
 
-    reason = gpu.unavailable_reason(intersector)
-    if reason is None:
-        return "gpu"
-    if intersector.backend == "gpu":
-        raise ValueError(f"Intersector: backend='gpu' cannot run: {reason}")
-    return "portable"
-
-
-def _enabled(rays: Ray) -> jax.Array:
-    finite = jnp.all(jnp.isfinite(rays.origin), axis=-1) & jnp.all(jnp.isfinite(rays.direction), axis=-1)
-    nonzero = jnp.any(rays.direction != 0, axis=-1)
-    interval = (rays.min_distance <= rays.max_distance) & ~jnp.isnan(rays.min_distance) & ~jnp.isnan(rays.max_distance)
-    return finite & nonzero & interval & (rays.mask != 0)
-
-
-def _chunked(fn, args, chunk: int):
-    """``fn`` over the rays in sequential chunks of ``chunk`` (the ray count is a power of two)."""
-    n = args[0].shape[0]
-    if n <= chunk:
-        return fn(*args)
-    split = [a.reshape(n // chunk, chunk, *a.shape[1:]) for a in args]
-    out = lax.map(lambda xs: fn(*xs), split)
-    return jax.tree_util.tree_map(lambda a: a.reshape(n, *a.shape[2:]), out)
-
-
-def _leaf_tester(intersector: Intersector, structure: PrimitiveAccelerationStructure, user_code: bool = True):
-    """The leaf tests the structure's kinds need: triangles (filtered where non-opaque), curves, boxes.
-
-    Without ``user_code`` neither the filter nor intersection functions are called: box leaves never hit and
-    non-opaque triangles are tested as opaque ones (an intersection query decides them itself).
+    Every box geometry needs a function; a function must name a box geometry (by its index within its own
+    structure) of some structure of the scene, and return a pair ``(accept, distance)`` of scalars; the filter
+    returns one scalar (checked by tracing them abstractly).
     """
-    detached = lax.stop_gradient
-    filtered = custom.filtered_geometries(intersector, structure) if user_code else ()
-    if filtered:
-        clockwise_front = intersector.front_facing_winding == "clockwise"
-        leaves = custom.FilteredTriangleLeaves(
-            structure, intersector._cull, clockwise_front, intersector.filter, filtered
-        )
-    else:
-        leaves = _TriangleLeaves(detached(structure.leaf_triangle), intersector._cull)
-    kinds = {g.kind for g in structure.geometry_info}
-    if structure.leaf_curve is not None:  # curves: their own test, or both tests selected per leaf
-        config = _curve_config(intersector, structure)
-        curves = curve_support.CurveLeaves(detached(structure.leaf_curve), structure.leaf_curve_flags, **config)
-        leaves = curve_support.MixedLeaves(leaves, curves) if "triangle" in kinds else curves
-    if structure.leaf_box is not None and user_code:  # boxes: the user's functions, alone or per leaf
-        boxes = custom.BoxLeaves(structure, intersector.intersection_functions)
-        leaves = boxes if kinds == {"bounding_box"} else custom.KindLeaves(leaves, boxes, structure)
-    return leaves
-
-
-def _trace_portable(intersector, structure, origin, direction, t_min, t_max, enabled):
-    """The portable stack traversal over chunks of rays, with the refill driver (see traversal/stack.py)."""
-    detached = lax.stop_gradient
-    leaves = _leaf_tester(intersector, structure)
-    nodes = (detached(structure.node_lower), detached(structure.node_upper), structure.node_children)
-    options = dict(
-        any_hit=intersector.accept_any_intersection,
-        stack_size=structure.max_depth,
-        max_hits=0 if intersector._count_all else intersector.max_hits,
-        count_all=intersector._count_all,
+    functions = dict(intersector.intersection_functions or ())
+    boxes = sorted({i for s in prims for i, g in enumerate(s.geometry_info) if g.kind == "bounding_box"})
+    for index in boxes:
+        if index not in functions:
+            raise ValueError(
+                f"Intersector.intersect: geometry {index} is a BoundingBoxGeometry but the intersector has no "
+                f"intersection function for it (pass intersection_functions={{{index}: fn}})"
+            )
+    for index in functions:
+        if index not in boxes:
+            kinds = sorted({s.geometry_info[index].kind for s in prims if index < len(s.geometry_info)})
+            kind = "absent" if not kinds else f"a {' or '.join(kinds)} geometry"
+            raise ValueError(
+                f"Intersector.intersect: intersection_functions names geometry {index}, which is {kind}; "
+                "intersection functions apply to BoundingBoxGeometry only"
+            )
+    dtype = prims[0].leaf_triangle.dtype
+    with_data = [s.leaf_primitive_data for s in prims if s.leaf_primitive_data is not None]
+    data = (
+        jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype), with_data[0]) if with_data else None
     )
-    args = tuple(detached(a) for a in (origin, direction, t_min, t_max)) + (enabled,)
-    if PORTABLE_DRIVER == "vmap":
-        return _chunked(jax.vmap(functools.partial(traverse, *nodes, leaves, **options)), args, CPU_CHUNK)
-    on_gpu = jax.default_backend() == "gpu"
-    chunk, lanes = (GPU_CHUNK, GPU_REFILL_LANES) if on_gpu else (CPU_CHUNK, REFILL_LANES)
-    return _chunked(functools.partial(traverse_refill, *nodes, leaves, **options, lanes=lanes), args, chunk)
-
-
-def _hit_fields(intersector, structure, origin, direction, t_min, t_max, leaf, distance) -> dict[str, Any]:
-    """The hit fields of rays whose traversal found ``leaf`` (``-1``: a miss) at ``distance``.
-
-    The chosen primitive is intersected again: exact values from the test the traversal ran, gradients from
-    a smooth formula (triangles), the curve's smooth hit, or the user's function called with gradients.
-    """
-    detached = lax.stop_gradient
-    unit_z = jnp.array([0.0, 0.0, 1.0], direction.dtype)
-    found = leaf >= 0
-    leaf = jnp.maximum(leaf, 0)
-    hit = found  # triangle hits, once the other kinds are taken out
-    infos = structure.geometry_info
-    if structure.leaf_curve is not None:  # curve hits: re-tested differentiably; triangles take the rest
-        is_curve, curve_t, curve_u = curve_support.curve_hit_fields(
-            structure, leaf, hit, origin, direction, t_min, t_max, distance, _curve_config(intersector, structure)
+    int_scalar = jax.ShapeDtypeStruct((), jnp.int32)
+    vector = jax.ShapeDtypeStruct((3,), dtype)
+    for index in boxes:
+        candidate = BoundingBoxCandidate(int_scalar, int_scalar, vector, vector, data)
+        out = _abstract_call(functions[index], dtype, candidate)
+        if not (isinstance(out, tuple | list) and len(out) == 2 and all(_is_scalar(x) for x in out)):
+            raise TypeError(
+                f"Intersector: the intersection function of geometry {index} must return a pair (accept, "
+                f"distance) of scalars for one ray and one candidate, got {out!r}"
+            )
+    non_opaque = any(g.kind == "triangle" and not g.opaque for s in prims for g in s.geometry_info)
+    if intersector.filter is not None and non_opaque:
+        scalar = jax.ShapeDtypeStruct((), dtype)
+        candidate = TriangleCandidate(
+            int_scalar, int_scalar, scalar, jax.ShapeDtypeStruct((2,), dtype), jax.ShapeDtypeStruct((), bool), data
         )
-        hit = hit & ~is_curve
-    if structure.leaf_box is not None:
-        is_box_table = custom.geometry_table(len(infos), custom.box_geometries(structure))
-        is_box = found & custom.leaf_flag(is_box_table, structure.leaf_geometry, leaf)
-        box_t = _box_distance(intersector, structure, leaf, is_box, origin, direction, t_min, t_max, distance)
-        hit = hit & ~is_box
-    kind = jnp.where(hit, int(IntersectionType.TRIANGLE), int(IntersectionType.NONE))
-    fields: dict[str, Any] = {
-        "type": None,
-        "distance": None,
-        "primitive_id": jnp.where(found, structure.leaf_primitive[leaf], -1),
-        "geometry_id": jnp.where(found, structure.leaf_geometry[leaf], -1),
-    }
-    # Re-intersect the chosen triangle: exact values from the watertight test, gradients from a smooth one.
-    vertices = structure.leaf_triangle[leaf]
-    dummy = jnp.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]], vertices.dtype)
-    vertices = jnp.where(hit[:, None, None], vertices, dummy)
-    # Misses also get a dummy ray: with their own (finite but possibly huge) origin the smooth formula can
-    # overflow, and its zero cotangent times inf would be a NaN gradient.
-    smooth_origin = jnp.where(hit[:, None], origin, 0.0)
-    smooth_direction = jnp.where(hit[:, None], direction, unit_z)
-    smooth_t, smooth_u, smooth_v = jax.vmap(triangle.smooth_hit)(smooth_origin, smooth_direction, vertices)
-
-    def attach(exact, smooth):
-        return jnp.where(hit, detached(exact) + (smooth - detached(smooth)), 0.0)
-
-    fields["distance"] = jnp.where(hit, attach(distance, smooth_t), jnp.inf)
-    if intersector.has("triangle_data"):
-        sheared = jax.vmap(triangle.shear_ray)(detached(origin), detached(direction))
-        u, v, clockwise = jax.vmap(triangle.barycentrics)(sheared, detached(vertices))
-        fields["triangle_barycentric_coord"] = jnp.stack([attach(u, smooth_u), attach(v, smooth_v)], axis=-1)
-        front = clockwise if intersector.front_facing_winding == "clockwise" else ~clockwise
-        fields["triangle_front_facing"] = hit & front
-    if structure.leaf_curve is not None:
-        kind = jnp.where(is_curve, int(IntersectionType.CURVE), kind)
-        fields["distance"] = jnp.where(is_curve, curve_t, fields["distance"])
-    if structure.leaf_box is not None:
-        kind = jnp.where(is_box, int(IntersectionType.BOUNDING_BOX), kind)
-        fields["distance"] = jnp.where(is_box, box_t, fields["distance"])
-    fields["type"] = kind.astype(jnp.int32)
-    if intersector.has("curve_data"):
-        curves = structure.leaf_curve is not None
-        fields["curve_parameter"] = jnp.where(is_curve, curve_u, 0.0) if curves else jnp.zeros_like(distance)
-    if intersector.has("primitive_data"):
-        fields["primitive_data"] = data_at(structure.leaf_primitive_data, leaf, found)
-    if intersector.has("instancing"):
-        fields.update(instancing.primitive_instance_fields(intersector, found, vertices.dtype))
-    return fields
+        out = jax.eval_shape(intersector.filter, candidate)
+        if not _is_scalar(out):
+            raise TypeError(f"Intersector: the filter must return one scalar accept flag per candidate, got {out!r}")
 
 
-def _box_distance(intersector, structure, leaf, is_box, origin, direction, t_min, t_max, distance):
-    """Box hit distances: the traversal's value, with the gradient of the function called again on the box.
-
-    The call again sees the ray's own interval (the nearest accepted root of this box is the one found): with
-    the found distance as ``max_distance``, a recomputation an ulp larger (other FMA contractions in another
-    program) would be rejected and lose the gradient.
-    """
-    detached = lax.stop_gradient
-    arrays = (structure.leaf_box, structure.leaf_geometry, structure.leaf_primitive, structure.leaf_primitive_data)
-    # Lanes without a box hit call the function with a harmless ray (no NaN in their zero gradients).
-    ray_origin = jnp.where(is_box[:, None], origin, 0.0)
-    ray_direction = jnp.where(is_box[:, None], direction, jnp.array([0.0, 0.0, 1.0], direction.dtype))
-    t_max = jnp.where(is_box, detached(t_max), 1.0)
-
-    def one(o, d, lo, hi, k):
-        ray = custom.function_ray(o, d, lo, hi)
-        return custom.call_function(intersector.intersection_functions, ray, custom.box_candidate(arrays, k))
-
-    accept, smooth = jax.vmap(one)(ray_origin, ray_direction, jnp.where(is_box, t_min, 0.0), t_max, leaf)
-    attached = detached(distance) + jnp.where(accept, smooth - detached(smooth), 0.0)
-    return jnp.where(is_box, attached, jnp.inf)
-
-
-def _trace(intersector, structure, origin, direction, t_min, t_max, enabled):
-    """Run the traversal the intersector and structure call for (the GPU kernel where it covers them)."""
-    detached = lax.stop_gradient
-    if _resolve_backend(intersector) == "gpu" and _gpu_declines(intersector, structure) is None:
-        from jaxrt._src.traversal import gpu
-
-        return gpu.trace(
-            structure,
-            *(detached(a) for a in (origin, direction, t_min, t_max)),
-            enabled,
-            any_hit=intersector.accept_any_intersection,
-            cull=intersector._cull,
-        )
-    return _trace_portable(intersector, structure, origin, direction, t_min, t_max, enabled)
-
-
-@functools.partial(jax.jit, static_argnums=0)
-@full_precision
-def _intersect_jit(
-    intersector: Intersector, rays: Ray, structure: PrimitiveAccelerationStructure | InstanceAccelerationStructure
-) -> IntersectionResult:
-    if isinstance(structure, InstanceAccelerationStructure):
-        return instancing.intersect_instances(intersector, rays, structure)
-    enabled = _enabled(rays)
-    unit_z = jnp.array([0.0, 0.0, 1.0], rays.direction.dtype)
-    origin = jnp.where(enabled[:, None], rays.origin, 0.0)
-    direction = jnp.where(enabled[:, None], rays.direction, unit_z)
-    t_min = jnp.where(enabled, rays.min_distance, 0.0)
-    t_max = jnp.where(enabled, rays.max_distance, 0.0)
-    found = _trace(intersector, structure, origin, direction, t_min, t_max, enabled)
-    if intersector._count_all:
-        return IntersectionResult({"hit_count": found.hits.total})
-    if intersector.max_hits is None:
-        fields = _hit_fields(intersector, structure, origin, direction, t_min, t_max, found.leaf, found.distance)
-    else:  # the same fields for each of the K hits, on an axis after the ray axis
-        k = intersector.max_hits
-        repeat = lambda a: jnp.repeat(a, k, axis=0)  # noqa: E731
-        flat = _hit_fields(
-            intersector,
-            structure,
-            *(repeat(a) for a in (origin, direction, t_min, t_max)),
-            found.hits.leaf.reshape(-1),
-            found.hits.distance.reshape(-1),
-        )
-        fields = jax.tree_util.tree_map(lambda a: a.reshape(-1, k, *a.shape[1:]), flat)
-        fields["hit_count"] = jnp.minimum(found.hits.total, k)
-        fields["hit_overflow"] = found.hits.total > k
-    if intersector.has("stats"):
-        fields["nodes_visited"] = found.nodes_visited
-        fields["primitives_tested"] = found.primitives_tested
-        fields["stack_overflow"] = found.stack_overflow
-    return IntersectionResult(fields)
+# Names older code imported from here.
+_resolve_backend = pipeline.resolve_backend
+_enabled = pipeline.enabled_rays

@@ -31,14 +31,15 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from jaxrt._src import custom_leaves as custom
+from jaxrt._src import leaves as leaf_tests
 from jaxrt._src.primitive_data import data_at
 from jaxrt._src.primitives import triangle
 from jaxrt._src.primitives.box import ray_box
 from jaxrt._src.ray import Ray
 from jaxrt._src.result import IntersectionType
 from jaxrt._src.structures import PrimitiveAccelerationStructure
-from jaxrt._src.traversal.stack import _RayConstants, _start, _State, _step
+from jaxrt._src.scene_view import SceneView, scene_view
+from jaxrt._src.traversal.step import RayConstants, State, start, visit
 
 __all__ = ["IntersectionQuery", "intersection_query"]
 
@@ -48,27 +49,25 @@ _NONE, _TRIANGLE, _BOX = int(IntersectionType.NONE), int(IntersectionType.TRIANG
 class _OpaqueLeaves:
     """The intersector's opaque tests (triangles, curves) with candidate leaves masked out (a ``LeafTester``)."""
 
-    def __init__(self, inner: Any, is_candidate_geometry: jax.Array, leaf_geometry: jax.Array):
+    def __init__(self, inner: Any, is_candidate_geometry: jax.Array, view: SceneView):
         self.inner = inner
         self.table = is_candidate_geometry
-        self.leaf_geometry = leaf_geometry
+        self.view = view
 
-    def prepare(self, origin, direction):
-        return self.inner.prepare(origin, direction)
+    def prepare(self, origin, direction, facing):
+        return self.inner.prepare(origin, direction, facing)
 
     def __call__(self, context, leaves, t_min, t_max):
         hit, t = self.inner(context, leaves, t_min, t_max)
-        candidate = custom.leaf_flag(self.table, self.leaf_geometry, leaves)
+        candidate = self.view.leaf_flag(self.table, leaves)
         return hit & ~candidate, jnp.where(candidate, jnp.inf, t)
 
 
-def _candidate_table(structure: PrimitiveAccelerationStructure) -> jax.Array:
+def _candidate_table(view: SceneView) -> jax.Array:
     """Geometries whose primitives are candidates: non-opaque triangles and boxes (padding row last)."""
-    infos = structure.geometry_info
-    members = tuple(
-        i for i, g in enumerate(infos) if (g.kind == "triangle" and not g.opaque) or g.kind == "bounding_box"
+    return view.slot_table(
+        view.slots_where(lambda g: (g.kind == "triangle" and not g.opaque) or g.kind == "bounding_box")
     )
-    return custom.geometry_table(len(infos), members)
 
 
 @jax.tree_util.register_dataclass
@@ -78,10 +77,10 @@ class IntersectionQuery:
     returns a new query. Build it with :func:`intersection_query`."""
 
     structure: PrimitiveAccelerationStructure
-    ray: _RayConstants
+    ray: RayConstants
     direction: jax.Array
     sheared: Any
-    state: _State
+    state: State
     pending_leaf: jax.Array  # (2,) candidate leaves found at the last node, nearest first; -1: none
     pending_distance: jax.Array  # (2,) their triangle distance or box entry distance
     candidate: jax.Array  # the current candidate leaf; -1: none
@@ -182,7 +181,7 @@ class IntersectionQuery:
     @property
     def candidate_ray(self) -> Ray:
         """The ray in the candidate's space, with ``max_distance`` the committed distance (for box tests)."""
-        return custom.function_ray(self.ray.origin, self.direction, self.ray.t_min, self.state.distance)
+        return leaf_tests.function_ray(self.ray.origin, self.direction, self.ray.t_min, self.state.distance)
 
     # --- the committed hit ---------------------------------------------------------------------------------
 
@@ -221,11 +220,9 @@ class IntersectionQuery:
         return jnp.where(valid, jnp.stack([u, v]), 0.0), valid & front
 
 
-def _tester(intersector: Any, structure: PrimitiveAccelerationStructure) -> _OpaqueLeaves:
-    from jaxrt._src.intersector import _leaf_tester
-
-    inner = _leaf_tester(intersector, structure, user_code=False)
-    return _OpaqueLeaves(inner, _candidate_table(structure), structure.leaf_geometry)
+def _tester(intersector: Any, view: SceneView) -> _OpaqueLeaves:
+    inner = leaf_tests.leaf_tester(intersector, view, user_code=False)
+    return _OpaqueLeaves(inner, _candidate_table(view), view)
 
 
 def _pop(q: IntersectionQuery) -> IntersectionQuery:
@@ -244,22 +241,21 @@ def _pop(q: IntersectionQuery) -> IntersectionQuery:
 def _advance(q: IntersectionQuery) -> IntersectionQuery:
     """One traversal step: opaque hits are committed, candidate leaves of the node become pending."""
     s, ray, structure = q.state, q.ray, q.structure
-    nodes = (structure.node_lower, structure.node_upper, structure.node_children)
+    view = scene_view(structure)
     children = structure.node_children[s.node]
     box_hit, t_near = ray_box(
         ray.origin, ray.inv_direction, ray.t_min, s.distance, structure.node_lower[s.node], structure.node_upper[s.node]
     )
     leaves = jnp.where((children < 0) & box_hit & ~s.done, -1 - children, -1)
-    is_candidate = (leaves >= 0) & custom.leaf_flag(_candidate_table(structure), structure.leaf_geometry, leaves)
+    is_candidate = (leaves >= 0) & view.leaf_flag(_candidate_table(view), leaves)
     kinds = q._kind(leaves)
     hits = triangle.watertight(
-        q.sheared, ray.t_min, s.distance, structure.leaf_triangle[jnp.maximum(leaves, 0)], q.intersector._cull
+        q.sheared, ray.t_min, s.distance, structure.leaf_triangle[jnp.maximum(leaves, 0)], q.intersector.cull
     )
     is_candidate &= (kinds == _BOX) | hits.hit
     distance = jnp.where(kinds == _BOX, jnp.maximum(t_near, ray.t_min), hits.distance)
-    state = _step(
-        nodes, _tester(q.intersector, structure), ray, s, q.intersector.accept_any_intersection, structure.max_depth
-    )
+    tester = _tester(q.intersector, view)
+    state = visit(view.traversal, view.layout, tester, ray, s, any_hit=q.intersector.accept_any_intersection)
     keep = is_candidate & (distance <= state.distance) & ~(q.intersector.accept_any_intersection & (state.leaf >= 0))
     distance = jnp.where(keep, distance, jnp.inf)
     order = jnp.argsort(distance)
@@ -279,7 +275,8 @@ def intersection_query(rays: Ray, structure: PrimitiveAccelerationStructure, int
       ValueError: ``rays`` is not a single ray. NotImplementedError: an instance structure.
     """
     from jaxrt._src.instances import InstanceAccelerationStructure
-    from jaxrt._src.intersector import Intersector, _enabled
+    from jaxrt._src.intersector import Intersector
+    from jaxrt._src.pipeline import enabled_rays
 
     if not isinstance(rays, Ray):
         raise TypeError(f"intersection_query: rays must be an rt.Ray, got {type(rays).__name__}")
@@ -294,13 +291,14 @@ def intersection_query(rays: Ray, structure: PrimitiveAccelerationStructure, int
         raise NotImplementedError("intersection_query: instance structures are not supported yet")
     if not isinstance(structure, PrimitiveAccelerationStructure):
         raise TypeError(f"intersection_query: structure must be a primitive structure, got {type(structure).__name__}")
-    enabled = _enabled(rays)
+    enabled = enabled_rays(rays)
     origin = jnp.where(enabled, rays.origin, 0.0)
     direction = jnp.where(enabled, rays.direction, jnp.array([0.0, 0.0, 1.0], rays.direction.dtype))
     t_min = jnp.where(enabled, rays.min_distance, 0.0)
     t_max = jnp.where(enabled, rays.max_distance, 0.0)
-    constants, state = _start(
-        _tester(intersector, structure), origin, direction, t_min, t_max, enabled, structure.max_depth
+    view = scene_view(structure)
+    constants, state = start(
+        _tester(intersector, view), view.layout, origin, direction, t_min, t_max, enabled, rays.mask
     )
     return IntersectionQuery(
         structure=structure,

@@ -1,0 +1,210 @@
+"""Result assembly: the fields the intersector's tags ask for, from the leaf and instance chain a traversal found.
+
+The traversal only picks the hit (detached). The chosen primitive is then intersected again in JAX, with the
+ray moved into the hit's object space level by level as the traversal did: exact values come from the test
+the traversal ran, gradients from a smooth formula (triangles: a world-space re-intersection with the vertices
+moved by the chain's composed object-to-world transform), the curve's smooth hit, or the user's intersection
+function called again. So distances, barycentrics, curve parameters, box distances and world-space
+transforms differentiate with respect to vertices, control points, radii, instance transforms and rays,
+holding the hit fixed. A scene without instances compiles none of the transform code.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+from jaxrt._src import leaves as leaf_tests
+from jaxrt._src.instances import apply_transform, compose_transforms, invert_transform
+from jaxrt._src.primitive_data import data_at
+from jaxrt._src.primitives import triangle
+from jaxrt._src.result import IntersectionType
+from jaxrt._src.scene_view import SceneView
+
+__all__ = ["NO_USER_ID", "hit_fields"]
+
+#: Filler of ``user_instance_id`` past ``instance_count`` (and on misses).
+NO_USER_ID = 0xFFFFFFFF
+
+
+class _Chain:
+    """The composed transforms of each hit's instance chain, and the ray in the hit's object space."""
+
+    def __init__(self, view: SceneView, chain: jax.Array, found: jax.Array, origin: jax.Array, direction: jax.Array):
+        detached = lax.stop_gradient
+        instances = view.instances
+        dtype = origin.dtype
+        chain = jnp.where(found[:, None], chain, -1)  # (n, L)
+        self.valid = chain >= 0
+        self.g = jnp.maximum(chain, 0)
+        identity = jnp.eye(3, 4, dtype=dtype)
+        # The stored inverses (the values the traversal used), differentiated as the inverse of the transforms.
+        inverse = invert_transform(instances.transform)
+        world_to_object_rows = detached(instances.world_to_object) + (inverse - detached(inverse))
+        to_world = jnp.where(self.valid[..., None, None], instances.transform[self.g], identity)  # (n, L, 3, 4)
+        to_object = jnp.where(self.valid[..., None, None], world_to_object_rows[self.g], identity)
+        object_to_world = jnp.broadcast_to(identity, (chain.shape[0], 3, 4))
+        world_to_object = object_to_world
+        for level in range(chain.shape[1]):
+            object_to_world = compose_transforms(object_to_world, to_world[:, level])
+            world_to_object = compose_transforms(to_object[:, level], world_to_object)
+        self.object_to_world = object_to_world
+        self.world_to_object = world_to_object
+        # The ray as the traversal moved it, level by level (the same arithmetic, so a re-test sees its ray).
+        for level in range(chain.shape[1]):
+            m = to_object[:, level]
+            origin = jnp.sum(m[..., :3] * origin[:, None, :], axis=-1) + m[..., 3]
+            direction = jnp.sum(m[..., :3] * direction[:, None, :], axis=-1)
+        self.origin, self.direction = origin, direction
+
+
+def _pad_levels(values: jax.Array, n: int, fill) -> jax.Array:
+    """``(rays, L)`` to ``(rays, n)`` with ``fill`` past ``L``."""
+    extra = n - values.shape[1]
+    if extra <= 0:
+        return values
+    return jnp.concatenate([values, jnp.full((values.shape[0], extra), fill, values.dtype)], axis=1)
+
+
+def _instance_fields(intersector: Any, view: SceneView, chain: _Chain | None, found: jax.Array, dtype) -> dict:
+    """``instance_id``, ``instance_count``, ``user_instance_id`` and the world-space transforms."""
+    n, levels = found.shape[0], intersector.max_levels
+    if chain is None:
+        fields = {
+            "instance_id": jnp.full((n, levels), -1, jnp.int32),
+            "instance_count": jnp.zeros((n,), jnp.int32),
+            "user_instance_id": jnp.full((n, levels), NO_USER_ID, jnp.uint32),
+        }
+        identity = jnp.where(found[:, None, None], jnp.eye(3, 4, dtype=dtype), 0.0)
+        to_world = to_object = identity
+    else:
+        instances = view.instances
+        fields = {
+            "instance_id": _pad_levels(jnp.where(chain.valid, instances.local_index[chain.g], -1), levels, -1),
+            "instance_count": jnp.sum(chain.valid, axis=1).astype(jnp.int32),
+            "user_instance_id": _pad_levels(
+                jnp.where(chain.valid, instances.user_id[chain.g], jnp.uint32(NO_USER_ID)).astype(jnp.uint32),
+                levels,
+                NO_USER_ID,
+            ),
+        }
+        to_world = jnp.where(found[:, None, None], chain.object_to_world, 0.0)
+        to_object = jnp.where(found[:, None, None], chain.world_to_object, 0.0)
+    if intersector.has("world_space_data"):
+        fields["object_to_world_transform"] = to_world
+        fields["world_to_object_transform"] = to_object
+    return fields
+
+
+def _box_distance(intersector, view, leaf, is_box, origin, direction, t_min, t_max, distance):
+    """Box hit distances: the traversal's value, with the gradient of the function called again on the box.
+
+    The call again sees the ray's own interval (the nearest accepted root of this box is the one found): with
+    the found distance as ``max_distance``, a recomputation an ulp larger (other FMA contractions in another
+    program) would be rejected and lose the gradient.
+    """
+    detached = lax.stop_gradient
+    # Lanes without a box hit call the function with a harmless ray (no NaN in their zero gradients).
+    ray_origin = jnp.where(is_box[:, None], origin, 0.0)
+    ray_direction = jnp.where(is_box[:, None], direction, jnp.array([0.0, 0.0, 1.0], direction.dtype))
+    t_max = jnp.where(is_box, detached(t_max), 1.0)
+
+    def one(o, d, lo, hi, k):
+        ray = leaf_tests.function_ray(o, d, lo, hi)
+        return leaf_tests.call_function(intersector.intersection_functions, ray, leaf_tests.box_candidate(view, k))
+
+    accept, smooth = jax.vmap(one)(ray_origin, ray_direction, jnp.where(is_box, t_min, 0.0), t_max, leaf)
+    attached = detached(distance) + jnp.where(accept, smooth - detached(smooth), 0.0)
+    return jnp.where(is_box, attached, jnp.inf)
+
+
+def hit_fields(
+    intersector: Any,
+    view: SceneView,
+    origin: jax.Array,
+    direction: jax.Array,
+    t_min: jax.Array,
+    t_max: jax.Array,
+    leaf: jax.Array,
+    distance: jax.Array,
+    chain: jax.Array,
+) -> dict[str, Any]:
+    """The hit fields of rays ``(n,)`` whose traversal found ``leaf`` (``-1``: a miss) at ``distance`` through
+    the instance ``chain`` ``(n, levels)``."""
+    from jaxrt._src import curves as curve_support
+
+    detached = lax.stop_gradient
+    dtype = origin.dtype
+    unit_z = jnp.array([0.0, 0.0, 1.0], dtype)
+    found = leaf >= 0
+    leaf = jnp.maximum(leaf, 0)
+    leaves = view.leaves
+    transforms = _Chain(view, chain, found, origin, direction) if view.levels else None
+    object_origin, object_direction = (transforms.origin, transforms.direction) if transforms else (origin, direction)
+    kinds = view.kinds
+    hit = found  # triangle hits, once the other kinds are taken out
+    kind = jnp.full(found.shape, int(IntersectionType.NONE), jnp.int32)
+    exact_distance = jnp.full(found.shape, jnp.inf, dtype)
+    if "curve" in kinds:  # curve hits: re-tested (in object space) differentiably
+        config = curve_support.curve_configuration(
+            tuple(g.curve for g in view.geometry_info if g.curve is not None),
+            intersector.curve_type,
+            intersector.curve_options,
+        )
+        is_curve, curve_t, curve_u = curve_support.curve_hit_fields(
+            leaves.curve, leaves.curve_flags, leaf, hit, object_origin, object_direction, t_min, t_max, distance, config
+        )
+        hit = hit & ~is_curve
+        kind = jnp.where(is_curve, int(IntersectionType.CURVE), kind)
+        exact_distance = jnp.where(is_curve, curve_t, exact_distance)
+    if "bounding_box" in kinds:
+        is_box = found & view.leaf_flag(view.slot_table(leaf_tests.box_slots(view)), leaf)
+        box_t = _box_distance(
+            intersector, view, leaf, is_box, object_origin, object_direction, t_min, t_max, distance
+        )
+        hit = hit & ~is_box
+        kind = jnp.where(is_box, int(IntersectionType.BOUNDING_BOX), kind)
+        exact_distance = jnp.where(is_box, box_t, exact_distance)
+    kind = jnp.where(hit, int(IntersectionType.TRIANGLE), kind)
+
+    # Re-intersect the chosen triangle: exact values from the watertight test (in object space), gradients from
+    # a smooth world-space one with the vertices moved by the chain's composed transform.
+    vertices = leaves.triangle[leaf]
+    world_vertices = jax.vmap(apply_transform)(transforms.object_to_world, vertices) if transforms else vertices
+    dummy = jnp.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]], dtype)
+    world_vertices = jnp.where(hit[:, None, None], world_vertices, dummy)
+    # Misses also get a dummy ray: with their own (finite but possibly huge) origin the smooth formula can
+    # overflow, and its zero cotangent times inf would be a NaN gradient.
+    smooth_origin = jnp.where(hit[:, None], origin, 0.0)
+    smooth_direction = jnp.where(hit[:, None], direction, unit_z)
+    smooth_t, smooth_u, smooth_v = jax.vmap(triangle.smooth_hit)(smooth_origin, smooth_direction, world_vertices)
+
+    def attach(exact, smooth):
+        return jnp.where(hit, detached(exact) + (smooth - detached(smooth)), 0.0)
+
+    fields: dict[str, Any] = {
+        "type": kind,
+        "distance": jnp.where(hit, attach(distance, smooth_t), exact_distance),
+        "primitive_id": jnp.where(found, leaves.primitive[leaf], -1),
+        "geometry_id": jnp.where(found, leaves.geometry[leaf], -1),
+    }
+    if intersector.has("triangle_data"):
+        triangle_direction = jnp.where(hit[:, None], detached(object_direction), unit_z)
+        sheared = jax.vmap(triangle.shear_ray)(detached(object_origin), triangle_direction)
+        u, v, clockwise = jax.vmap(triangle.barycentrics)(sheared, detached(vertices))
+        fields["triangle_barycentric_coord"] = jnp.stack([attach(u, smooth_u), attach(v, smooth_v)], axis=-1)
+        if transforms is not None:
+            flips = jnp.prod(jnp.where(transforms.valid, view.instances.flip[transforms.g], 1), axis=1)
+            clockwise = clockwise ^ (flips < 0)
+        front = clockwise if intersector.front_facing_winding == "clockwise" else ~clockwise
+        fields["triangle_front_facing"] = hit & front
+    if intersector.has("curve_data"):
+        fields["curve_parameter"] = jnp.where(is_curve, curve_u, 0.0) if "curve" in kinds else jnp.zeros_like(distance)
+    if intersector.has("primitive_data"):
+        fields["primitive_data"] = data_at(leaves.primitive_data, leaf, found)
+    if intersector.has("instancing"):
+        fields.update(_instance_fields(intersector, view, transforms, found, dtype))
+    return fields

@@ -1,0 +1,227 @@
+"""The intersection pipeline: rays -> scene view -> traversal (GPU kernel or portable) -> result fields.
+
+One path for every structure: a primitive structure is a scene with zero instance levels. The traversal is
+the GPU kernel where :func:`kernel_declines` finds nothing it lacks and the default backend is a GPU, else the
+portable stack traversal (:mod:`jaxrt._src.traversal.drivers`) with the leaf tests of
+:mod:`jaxrt._src.leaves`; both return the same :class:`~jaxrt._src.traversal.scene.TraversalResult`.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+from jaxrt._src import fields as result_fields
+from jaxrt._src import leaves as leaf_tests
+from jaxrt._src.numerics import full_precision
+from jaxrt._src.ray import Ray
+from jaxrt._src.result import IntersectionResult
+from jaxrt._src.scene_view import SceneView, scene_view
+from jaxrt._src.traversal import drivers
+from jaxrt._src.traversal.scene import TraversalResult
+
+__all__ = [
+    "CPU_CHUNK",
+    "GPU_CHUNK",
+    "GPU_REFILL_LANES",
+    "INTERSECT_CHUNK",
+    "REFILL_LANES",
+    "SanitizedRays",
+    "enabled_rays",
+    "intersect",
+    "kernel_declines",
+    "power_of_two_bucket",
+    "resolve_backend",
+    "sanitize",
+    "trace",
+]
+
+#: Rays per traversal batch. Batches run one after another; on the CPU a batch that stays in cache is faster.
+CPU_CHUNK = 1 << 16
+GPU_CHUNK = 1 << 22
+#: Rays in flight in the refill driver (chosen by measurement on a 2-core CPU: 512, 2048, 8192 lanes).
+REFILL_LANES = 2048
+#: On a GPU a step over few lanes is all launch overhead: keep many rays in flight.
+GPU_REFILL_LANES = 1 << 18
+#: Rays per compiled intersection call. Larger batches are traced in sequential chunks of this many rays
+#: (``lax.map``), so that the temporaries of packing, traversal and result assembly stay per chunk (by a count
+#: of the arrays, at most about 200 bytes per ray: 3.4 GB at 2**24); the rays, one padded copy of them and the
+#: result are per batch. Measured on an H200: 100M rays in one call peaked at 14.3 GB (docs/performance.md).
+INTERSECT_CHUNK = 1 << 24
+
+
+def power_of_two_bucket(n: int) -> int:
+    """The smallest power of two ``>= max(n, 1)``: sizes in one bucket share compiled code."""
+    return 1 << max(0, (max(n, 1) - 1).bit_length())
+
+
+def enabled_rays(rays: Ray) -> jax.Array:
+    """Rays that can hit: finite, non-zero direction, ``min_distance <= max_distance``, mask not 0."""
+    finite = jnp.all(jnp.isfinite(rays.origin), axis=-1) & jnp.all(jnp.isfinite(rays.direction), axis=-1)
+    nonzero = jnp.any(rays.direction != 0, axis=-1)
+    interval = (rays.min_distance <= rays.max_distance) & ~jnp.isnan(rays.min_distance) & ~jnp.isnan(rays.max_distance)
+    return finite & nonzero & interval & (rays.mask != 0)
+
+
+class SanitizedRays:
+    """A ray batch with disabled rays replaced by a harmless one (origin 0, direction +z, interval [0, 0])."""
+
+    def __init__(self, rays: Ray):
+        self.enabled = enabled_rays(rays)
+        on = self.enabled
+        unit_z = jnp.array([0.0, 0.0, 1.0], rays.direction.dtype)
+        self.origin = jnp.where(on[..., None], rays.origin, 0.0)
+        self.direction = jnp.where(on[..., None], rays.direction, unit_z)
+        self.t_min = jnp.where(on, rays.min_distance, 0.0)
+        self.t_max = jnp.where(on, rays.max_distance, 0.0)
+        self.mask = rays.mask
+
+
+sanitize = SanitizedRays
+
+
+def kernel_declines(intersector: Any, geometry_info: tuple) -> str | None:
+    """Why the GPU kernel does not cover a scene of these geometries with this intersector (``None``: it does).
+
+    The one place that decides the kernel's coverage (with :func:`jaxrt._src.traversal.gpu.unavailable_reason`
+    for the machine and the tags).
+    """
+    kinds = {g.kind for g in geometry_info}
+    if "curve" in kinds:
+        return "curves are not covered by the GPU kernel"
+    if "bounding_box" in kinds:
+        return "bounding-box geometry (intersection functions) is not covered by the GPU kernel"
+    if intersector.filter is not None and any(g.kind == "triangle" and not g.opaque for g in geometry_info):
+        return "filters on non-opaque geometry are not covered by the GPU kernel"
+    if intersector.max_hits is not None or intersector.counts_all:
+        return "multi-hit (max_hits) and counting are not covered by the GPU kernel"
+    return None
+
+
+def resolve_backend(intersector: Any) -> str:
+    """``"portable"`` or ``"gpu"``: which traversal runs for this intersector on the default JAX backend."""
+    if intersector.backend == "portable":
+        return "portable"
+    from jaxrt._src.traversal import gpu
+
+    reason = gpu.unavailable_reason(intersector)
+    if reason is None:
+        return "gpu"
+    if intersector.backend == "gpu":
+        raise ValueError(f"Intersector: backend='gpu' cannot run: {reason}")
+    return "portable"
+
+
+def _chunked(fn, args, chunk: int):
+    """``fn`` over the rays in sequential chunks of ``chunk`` (the ray count is a power of two)."""
+    n = args[0].shape[0]
+    if n <= chunk:
+        return fn(*args)
+    split = [a.reshape(n // chunk, chunk, *a.shape[1:]) for a in args]
+    out = lax.map(lambda xs: fn(*xs), split)
+    return jax.tree_util.tree_map(lambda a: a.reshape(n, *a.shape[2:]), out)
+
+
+def _trace_portable(intersector: Any, view: SceneView, rays: SanitizedRays) -> TraversalResult:
+    """The portable stack traversal over chunks of rays, with the refill driver."""
+    detached = lax.stop_gradient
+    scene = jax.tree_util.tree_map(detached, view.traversal)
+    tester = leaf_tests.leaf_tester(intersector, view)
+    on_gpu = jax.default_backend() == "gpu"
+    chunk, lanes = (GPU_CHUNK, GPU_REFILL_LANES) if on_gpu else (CPU_CHUNK, REFILL_LANES)
+    fn = functools.partial(
+        drivers.traverse_refill,
+        scene,
+        view.layout,
+        tester,
+        any_hit=intersector.accept_any_intersection,
+        max_hits=0 if intersector.counts_all else intersector.max_hits,
+        count_all=intersector.counts_all,
+        lanes=lanes,
+        split=jax.default_backend() == "cpu",
+    )
+    args = tuple(detached(a) for a in (rays.origin, rays.direction, rays.t_min, rays.t_max)) + (
+        rays.enabled,
+        rays.mask,
+    )
+    return _chunked(fn, args, chunk)
+
+
+def trace(intersector: Any, view: SceneView, rays: SanitizedRays) -> TraversalResult:
+    """Run the traversal the intersector and scene call for (the GPU kernel where it covers them)."""
+    if resolve_backend(intersector) == "gpu" and kernel_declines(intersector, view.geometry_info) is None:
+        from jaxrt._src.traversal import gpu
+
+        detached = lax.stop_gradient
+        return gpu.trace_scene(
+            jax.tree_util.tree_map(detached, view.traversal),
+            view.layout,
+            *(detached(a) for a in (rays.origin, rays.direction, rays.t_min, rays.t_max)),
+            rays.enabled,
+            rays.mask,
+            any_hit=intersector.accept_any_intersection,
+            cull=intersector.cull,
+        )
+    return _trace_portable(intersector, view, rays)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+@full_precision
+def _intersect_jit(intersector: Any, rays: Ray, structure: Any) -> IntersectionResult:
+    """The result for a flat, padded ray batch ``(n,)`` (inside ``jit``)."""
+    view = scene_view(structure)
+    ray = SanitizedRays(rays)
+    found = trace(intersector, view, ray)
+    if intersector.counts_all:
+        return IntersectionResult({"hit_count": found.hits.total})
+    geometry = (ray.origin, ray.direction, ray.t_min, ray.t_max)
+    if intersector.max_hits is None:
+        fields = result_fields.hit_fields(intersector, view, *geometry, found.leaf, found.distance, found.instances)
+    else:  # the same fields for each of the K hits, on an axis after the ray axis
+        k = intersector.max_hits
+        hits = found.hits
+        chains = hits.instances if hits.instances is not None else jnp.zeros((*hits.leaf.shape, 0), jnp.int32)
+        flat = result_fields.hit_fields(
+            intersector,
+            view,
+            *(jnp.repeat(a, k, axis=0) for a in geometry),
+            hits.leaf.reshape(-1),
+            hits.distance.reshape(-1),
+            chains.reshape(hits.leaf.size, chains.shape[-1]),
+        )
+        fields = jax.tree_util.tree_map(lambda a: a.reshape(-1, k, *a.shape[1:]), flat)
+        fields["hit_count"] = jnp.minimum(hits.total, k)
+        fields["hit_overflow"] = hits.total > k
+    if intersector.has("stats"):
+        fields["nodes_visited"] = found.nodes_visited
+        fields["primitives_tested"] = found.primitives_tested
+        fields["stack_overflow"] = found.stack_overflow
+    return IntersectionResult(fields)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 3))
+def _intersect_chunks(intersector: Any, rays: Ray, structure: Any, chunk: int) -> IntersectionResult:
+    """``_intersect_jit`` over sequential chunks of ``chunk`` rays (the ray count is a multiple of it)."""
+    split = jax.tree_util.tree_map(lambda a: a.reshape(-1, chunk, *a.shape[1:]), rays)
+    out = lax.map(lambda r: _intersect_jit(intersector, r, structure), split)
+    return jax.tree_util.tree_map(lambda a: a.reshape(-1, *a.shape[2:]), out)
+
+
+def intersect(intersector: Any, rays: Ray, structure: Any) -> IntersectionResult:
+    """Rays of any batch shape, padded to a power-of-two bucket (or chunks of :data:`INTERSECT_CHUNK`)."""
+    shape = rays.shape
+    flat = rays.reshape(-1)
+    n = flat.origin.shape[0]
+    chunk = INTERSECT_CHUNK
+    padded = power_of_two_bucket(n) if n <= chunk else -(-n // chunk) * chunk
+    if padded != n:
+        flat = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, jnp.zeros((padded - n, *a.shape[1:]), a.dtype)]), flat)
+    if padded <= chunk:
+        result = _intersect_jit(intersector, flat, structure)
+    else:
+        result = _intersect_chunks(intersector, flat, structure, chunk)
+    return jax.tree_util.tree_map(lambda a: a[:n].reshape(*shape, *a.shape[1:]), result)
