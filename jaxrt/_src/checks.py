@@ -9,8 +9,10 @@ error reaches the caller as a ``jax.errors.JaxRuntimeError`` whose message conta
 ``BuildCheckError: ...`` line (when the computation runs, not when it is traced); with concrete arrays it is
 raised directly.
 
-Cost: one reduction per rule over the input arrays and one device-to-host synchronisation per build (measured
-in docs/design.md); off by default.
+Cost: one reduction per rule over the input arrays and one device-to-host synchronisation per build; off by
+default. Measured on a shared 2-core CPU (jax 0.10.2, jitted builds, steady state): 10,000 triangles 4.2 ms
+unchecked, 5.3 ms checked; 1,000 instances 1.3 ms and 3.0 ms; 200,000 triangles and 100,000 instances within
+the run-to-run noise (257 vs 202 ms, 277 vs 315 ms).
 """
 
 from __future__ import annotations
