@@ -9,6 +9,12 @@
 #           procedural scenes and on the real meshes carried in .meshes/, fast and high-quality trees
 #   tests   every test of tests/test_gpu.py (the Triton-interpreter one included)
 #   variants  GPU tests, then kernel variants (layouts, code generation) on the procedural scenes, bunny, Sponza
+#   instanced the instanced-kernel tests and the instancing bench (kernel and portable paths, batched scenes)
+#   flat      the flat kernel of this tree against an earlier one (sphere, soup, bunny), then the GPU tests
+#   programs  the instancing bench without the flattened scene, the kernel also under several program caps
+# "instanced" and "flat" run from snapshots of committed trees, so that uncommitted work in the working tree
+# cannot change what is measured: .snap/after (git archive HEAD jaxrt tests scripts pyproject.toml) and, for
+# "flat", .snap/before (git archive <commit> jaxrt); the bunny is read from .data/stanford-bunny/.
 # Logs and JSON go to $OUT (or /tmp/out).
 set -uo pipefail
 mode=${1:-check}
@@ -19,7 +25,28 @@ export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
 if [ -f .peers/warp.so.xz.part00 ]; then mkdir -p /root/parts && cp .peers/warp.so.xz.part00 /root/parts/; fi
 nvidia-smi --query-gpu=name,driver_version,clocks.sm,clocks.max.sm,memory.used --format=csv
 python3 -c "import jax, jax_triton, triton, numpy; print('jax', jax.__version__, 'triton', triton.__version__, 'jax-triton', jax_triton.__version__, 'numpy', numpy.__version__, jax.devices())"
+root=$PWD
+step() { local name=$1 limit=$2; shift 2; echo "=== $name: $*"; timeout "$limit" "$@" 2>&1 | tee "$out/$name.log"; echo "exit ${PIPESTATUS[0]}"; }
 case $mode in
+  instanced)
+    cd .snap/after && export PYTHONPATH=/tmp/site:$PWD JAXRT_DATA_DIR=$root/.data
+    step tests_instanced 150 python3 -m pytest tests/test_gpu_instanced.py -q -p no:cacheprovider -rs -x --durations=5
+    step instancing 330 python3 -m jaxrt.bench.instancing --json "$out/instancing.json"
+    ;;
+  flat)
+    for tree in before after; do
+      (cd ".snap/$tree" && export PYTHONPATH=/tmp/site:$PWD JAXRT_DATA_DIR=$root/.data && step "flat_$tree" 170 \
+        python3 -m jaxrt.bench.gpu --scenes sphere,soup,bunny --quality fast --portable-rays 0 --repeats 5 \
+        --json "$out/flat_$tree.json")
+    done
+    cd .snap/after && export PYTHONPATH=/tmp/site:$PWD
+    step tests_gpu 230 python3 -m pytest tests/test_gpu.py -q -p no:cacheprovider -rs -k "not interpreter"
+    ;;
+  programs)
+    cd .snap/after && export PYTHONPATH=/tmp/site:$PWD
+    step programs 400 python3 -m jaxrt.bench.instancing --max-flat 0 --programs 2048,4096,8192,32768 \
+      --json "$out/programs.json"
+    ;;
   check)
     timeout 420 python3 -m pytest tests/test_gpu.py tests/test_bvh_quality.py tests/test_sharding.py -q \
       -p no:cacheprovider -rs -k "not interpreter" 2>&1 | tee "$out/tests.log"

@@ -371,6 +371,42 @@ def kernel_scratch_bytes(structure: Any, rays: int) -> int:
     return 4 * (programs * lanes * per_lane + layout.levels * rays)
 
 
+def _launches(fn: Any, *args: Any) -> int:
+    """Kernel launches in the compiled program of ``fn(*args)`` (custom calls in its HLO)."""
+    flat, tree = jax.tree_util.tree_flatten(args)
+    lowered = jax.jit(lambda *leaves: fn(*jax.tree_util.tree_unflatten(tree, leaves))).lower(*flat)
+    return lowered.as_text().count("custom_call @triton_kernel_call")
+
+
+def program_sweep(kernel: Any, structures: dict[str, Any], rays: rt.Ray, batched: tuple, counts, repeats: int):
+    """Kernel speed and scratch memory for several caps on the programs per launch (``gpu.MAX_PROGRAMS``)."""
+    from jaxrt._src.traversal import gpu
+
+    n_rays = int(np.prod(rays.shape))
+    default, out = gpu.MAX_PROGRAMS, {}
+    try:
+        for count in counts:
+            gpu.MAX_PROGRAMS = count
+            gpu._traversal.cache_clear()
+            jax.clear_caches()  # compiled traces captured the previous cap
+            row = {}
+            for name, structure in structures.items():
+                timing, _ = timed(lambda s=structure: jax.jit(kernel)(s, rays), repeats)
+                row[name] = {
+                    "mrays_s": n_rays / timing.median_s / 1e6,
+                    "scratch_bytes": kernel_scratch_bytes(structure, n_rays),
+                }
+            batch_fn = jax.jit(jax.vmap(kernel))
+            timing, _ = timed(lambda f=batch_fn: f(*batched), repeats)
+            scene_rays = int(np.prod(batched[1].shape))
+            row["batched_scene_rays_per_s"] = scene_rays / timing.median_s
+            out[count] = row
+    finally:
+        gpu.MAX_PROGRAMS = default
+        gpu._traversal.cache_clear()
+    return out
+
+
 def _agreement(hit: Any, distance: Any, reference: Any) -> float:
     """Fraction of rays whose hit or miss, and distance where both hit, match the reference ``intersect``."""
     want = reference.type != 0
@@ -410,6 +446,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--grove-trees", type=int, help=f"trees per grove (default {_DEFAULTS['grove_trees']})")
     parser.add_argument("--scenes", type=int, help=f"batched scenes (default {_DEFAULTS['scenes']})")
     parser.add_argument("--max-flat", type=int, help="skip the flattened structure above this many triangles")
+    parser.add_argument(
+        "--programs", help="also time the kernel with these caps on programs per launch (e.g. 4096,8192)"
+    )
     return parser
 
 
@@ -497,8 +536,10 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                 reference = hit
         if kernel_fn is not None:
             results["flattened (kernel)"] = kernel_entry(flat, {"bytes": nbytes(flat), "build": build_timing.as_dict()})
+    built = {}
     for name, (build, levels) in builders.items():
         build_timing, structure = timed(build, repeats)
+        built[name] = structure
         intersector = rt.Intersector(rt.tags.instancing, rt.tags.max_levels(levels))
         trace_timing, hit = timed(lambda it=intersector, s=structure: it.intersect(rays, s), repeats)
         entry = {
@@ -550,8 +591,11 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             "scene_rays_per_s": scene_rays / kernel_timing.median_s,
             "hit_fraction": float(jnp.mean(hit)),
             "agree_with_intersect": float(jnp.mean(same)),
-            "launches": str(jax.make_jaxpr(jax.vmap(kernel))(batch, camera)).count("triton_kernel_call"),
+            "launches": _launches(jax.vmap(kernel), batch, camera),
         }
+        if args.programs:
+            counts = [int(p) for p in args.programs.split(",")]
+            batched["kernel"]["program_sweep"] = program_sweep(kernel, built, rays, (batch, camera), counts, repeats)
 
     config = dict(sizes, rays=n_rays, quick=bool(args.quick))
     out = {"machine": machine, "config": config, "scene": info, "results": results, "batched": batched}
@@ -600,6 +644,15 @@ def _print(out: dict[str, Any]) -> None:
             f"{kernel['scene_rays_per_s'] / 1e6:.1f} M scene-rays/s, hit {kernel['hit_fraction']:.3f}, "
             f"agrees with intersect on {kernel['agree_with_intersect']:.4f}"
         )
+        for count, row in kernel.get("program_sweep", {}).items():
+            levels = ", ".join(
+                f"{name} {entry['mrays_s']:.1f} Mrays/s ({entry['scratch_bytes'] / 1e6:.0f} MB scratch)"
+                for name, entry in row.items()
+                if isinstance(entry, dict)
+            )
+            print(
+                f"  at most {count} programs: {levels}; batched {row['batched_scene_rays_per_s'] / 1e6:.0f} M scene-rays/s"
+            )
 
 
 if __name__ == "__main__":
