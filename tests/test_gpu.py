@@ -249,19 +249,22 @@ def _emulated_kernel(calls, *args, config):
     primitive structure, every ray starting at node 0)."""
     from test_gpu_instanced import _Triangles
 
-    from jaxrt._src.traversal import stack
+    from jaxrt._src.traversal import drivers
+    from jaxrt._src.traversal.scene import TraversalLayout, TraversalScene
 
-    node_lower, node_upper, node_children, _, leaf_triangle = args[:5]
-    origin, direction, t_min, t_max, enabled = args[9:14]
+    node_lower, node_upper, node_children, _, leaf_triangle, *instance_arrays = args[:9]
+    origin, direction, t_min, t_max, enabled, mask = args[9:15]
     calls.append((origin.shape[0], config))
     if config.roots:  # a batch of scenes: the launch is recorded, the result left to the interpreter tests
         n = origin.shape[0]
         zero = jnp.zeros((n,), jnp.int32)
         return jnp.full((n,), jnp.inf), zero - 1, jnp.zeros((n, config.levels), jnp.int32), zero, zero, zero
     nodes = packed.unpack_nodes(packed.pack_nodes(node_lower, node_upper, node_children))
+    scene = TraversalScene(*nodes, leaf_triangle, *instance_arrays)
+    layout = TraversalLayout(root=0, primitive_leaves=config.primitive_leaves, levels=0, stack_size=config.stack)
     leaves = _Triangles(leaf_triangle, config.cull)
-    fn = functools.partial(stack.traverse, *nodes, leaves, any_hit=config.any_hit, stack_size=config.stack)
-    out = jax.vmap(fn)(origin, direction, t_min, t_max, enabled)
+    fn = functools.partial(drivers.traverse, scene, layout, leaves, any_hit=config.any_hit)
+    out = jax.vmap(fn)(origin, direction, t_min, t_max, enabled, mask)
     chain = jnp.zeros((origin.shape[0], 0), jnp.int32)
     return out.distance, out.leaf, chain, out.nodes_visited, out.primitives_tested, out.stack_overflow.astype(jnp.int32)
 

@@ -113,8 +113,8 @@ class _Triangles:
     def __init__(self, leaf_triangle, cull: int):
         self.leaf_triangle, self.cull = leaf_triangle, cull
 
-    def prepare(self, origin, direction, facing=1):
-        return triangle.shear_ray(origin, direction), facing * self.cull
+    def prepare(self, origin, direction, facing=None):
+        return triangle.shear_ray(origin, direction), (1 if facing is None else facing) * self.cull
 
     def __call__(self, context, leaves, t_min, t_max):
         sheared, sense = context
@@ -126,28 +126,13 @@ class _Triangles:
 
 
 def portable(scene, layout, origin, direction, t_min, t_max, enabled, mask, *, any_hit: bool, cull: int) -> dict:
-    """The portable traversal of the same scene view (``instanced.traverse``; ``stack.traverse`` at 0 levels)."""
-    from jaxrt._src.traversal import instanced, stack
+    """The portable traversal of the same scene view (``drivers.traverse``, one ray per ``vmap`` lane)."""
+    from jaxrt._src.traversal import drivers
 
-    leaves = _Triangles(scene.leaf_triangle, cull)
-    if layout.levels == 0:
-        fn = functools.partial(
-            stack.traverse, scene.node_lower, scene.node_upper, scene.node_children, leaves,
-            any_hit=any_hit, stack_size=layout.stack_size,
-        )  # fmt: skip
-        out = jax.jit(jax.vmap(fn))(origin, direction, t_min, t_max, enabled)
-        chain = jnp.zeros((origin.shape[0], 0), jnp.int32)
-        return dict(distance=out.distance, leaf=out.leaf, instances=chain, nodes_visited=out.nodes_visited,
-                    primitives_tested=out.primitives_tested)  # fmt: skip
-    rows = instanced.pack_instances(scene.instance_world_to_object, scene.instance_child_root, scene.instance_facing)
-    view = instanced.InstancedScene(scene.node_lower, scene.node_upper, scene.node_children, rows, scene.instance_mask)
-    fn = functools.partial(
-        instanced.traverse, view, leaves, root=layout.root, primitive_leaves=layout.primitive_leaves,
-        levels=layout.levels, any_hit=any_hit, stack_size=layout.stack_size,
-    )  # fmt: skip
+    fn = functools.partial(drivers.traverse, scene, layout, _Triangles(scene.leaf_triangle, cull), any_hit=any_hit)
     out = jax.jit(jax.vmap(fn))(origin, direction, t_min, t_max, enabled, mask)
-    return dict(distance=out.distance, leaf=out.leaf, instances=out.instances, nodes_visited=out.nodes_visited,
-                primitives_tested=out.primitives_tested)  # fmt: skip
+    names = ("distance", "leaf", "instances", "nodes_visited", "primitives_tested")
+    return {name: getattr(out, name) for name in names}
 
 
 def assert_same(got, want: dict, *, rtol: float = 1e-6) -> None:
@@ -356,3 +341,27 @@ def test_primitive_structure_through_trace_scene(kernel_here):
     structure = _mesh(rng, 16)
     got, _ = check(structure, rays(64, seed=2, spread=1.0), cull=1)
     assert got.instances.shape == (64, 0)
+
+
+@kernel_test
+def test_intersector_reaches_the_kernel_for_instances(kernel_here, monkeypatch):
+    """``Intersector(backend="gpu")`` on an instance structure: the kernel runs and every field equals the
+    portable path's."""
+    if not ON_GPU:
+        monkeypatch.setattr(gpu, "unavailable_reason", lambda intersector: None)
+    structure = scene_of_levels(2, seed=9)
+    origin, direction, t_min, t_max, _, mask = rays(64, seed=10)
+    ray = rt.Ray(origin, direction, t_min, t_max, mask=mask)
+    tags = (rt.tags.instancing, rt.tags.max_levels(2), rt.tags.triangle_data, rt.tags.world_space_data)
+    tags += (rt.tags.user_instance_id, rt.tags.stats)
+    got = rt.Intersector(*tags, backend="gpu").intersect(ray, structure)
+    if not ON_GPU:
+        assert LAUNCHES, "the kernel did not run"
+    want = rt.Intersector(*tags, backend="portable").intersect(ray, structure)
+    assert (np.asarray(want.type) != 0).sum() > 10
+    for name in want:
+        a, b = np.asarray(got[name]), np.asarray(want[name])
+        if a.dtype.kind == "f":
+            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6, err_msg=name)
+        else:
+            np.testing.assert_array_equal(a, b, err_msg=name)
