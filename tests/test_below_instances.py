@@ -99,10 +99,21 @@ def _compose(outer: np.ndarray, inner: np.ndarray) -> np.ndarray:
     return np.concatenate([outer[:, :3] @ inner[:, :3], (outer[:, :3] @ inner[:, 3] + outer[:, 3])[:, None]], axis=1)
 
 
-def _rays(seed: int, n: int = 256) -> rt.Ray:
+def _rays(seed: int, n: int = 256, flat=None) -> rt.Ray:
+    """Rays from a box around the scene, most aimed at its primitives (the flattened scene's leaves)."""
     rng = np.random.default_rng(seed + 100)
     origin = rng.uniform(-12.0, 12.0, size=(n, 3)) + np.array([4.0, 0.0, 0.0])
     target = rng.uniform(-4.0, 4.0, size=(n, 3)) + np.array([4.0, 0.0, 0.0])
+    if flat is not None:
+        real = np.asarray(flat.leaf_geometry) >= 0
+        centres = np.asarray(flat.leaf_triangle).mean(axis=1)
+        boxes = np.asarray(flat.leaf_box)
+        is_box = np.asarray(flat.leaf_geometry) == 1
+        centres[is_box] = boxes[is_box].mean(axis=1)
+        centres = centres[real]
+        aimed = rng.uniform(size=n) < 0.8
+        picks = centres[rng.integers(0, len(centres), size=n)] + rng.normal(scale=0.05, size=(n, 3))
+        target = np.where(aimed[:, None], picks, target)
     return rt.Ray(origin.astype(np.float32), (target - origin).astype(np.float32), max_distance=50.0)
 
 
@@ -137,10 +148,11 @@ def _assert_same(got, want, copies: int):
 @pytest.mark.parametrize("levels", [1, 2])
 def test_boxes_filters_and_data_below_instances_equal_the_flattened_scene(levels):
     structure, flat, copies = _scene(levels, levels)
-    rays = _rays(levels)
+    rays = _rays(levels, flat=flat)
     got = _intersector(levels).intersect(rays, structure)
     want = _intersector(0).intersect(rays, flat)
     kinds = set(np.asarray(want.type).tolist())
+    assert (np.asarray(want.type) != 0).sum() > 100, "weak test scene"
     assert {int(rt.IntersectionType.TRIANGLE), int(rt.IntersectionType.BOUNDING_BOX)} <= kinds, "weak test scene"
     _assert_same(got, want, copies)
     assert np.all(np.asarray(got.instance_count)[np.asarray(got.type) != 0] == levels)
@@ -148,8 +160,8 @@ def test_boxes_filters_and_data_below_instances_equal_the_flattened_scene(levels
 
 def test_filter_rejections_change_the_answer_below_instances():
     """The filter is really called below instances: accepting everything gives other hits."""
-    structure, _, _ = _scene(3, 1)
-    rays = _rays(3)
+    structure, flat, _ = _scene(3, 1)
+    rays = _rays(3, flat=flat)
     filtered = _intersector(1).intersect(rays, structure)
     everything = rt.Intersector(
         rt.tags.instancing, intersection_functions={1: rt.intersection_functions.sphere}, backend="portable"
@@ -161,14 +173,19 @@ def test_filter_rejections_change_the_answer_below_instances():
 @pytest.mark.parametrize("levels", [1, 2])
 def test_max_hits_and_counting_below_instances_equal_the_flattened_scene(levels):
     structure, flat, copies = _scene(10 + levels, levels)
-    rays = _rays(10 + levels)
+    rays = _rays(10 + levels, flat=flat)
     got = _intersector(levels, max_hits=3).intersect(rays, structure)
     want = _intersector(0, max_hits=3).intersect(rays, flat)
     np.testing.assert_array_equal(got.hit_count, want.hit_count)
     np.testing.assert_array_equal(got.hit_overflow, want.hit_overflow)
     assert np.asarray(want.hit_count).max() >= 2, "weak test scene"
     for k in range(3):
-        pick = lambda r, k=k: type(r)({name: np.asarray(v)[:, k] if name not in ("hit_count", "hit_overflow", "primitive_data") else v for name, v in r.items()})  # noqa: E731
+        pick = lambda r, k=k: type(r)(
+            {
+                name: np.asarray(v)[:, k] if name not in ("hit_count", "hit_overflow", "primitive_data") else v
+                for name, v in r.items()
+            }
+        )  # noqa: E731
         g, w = pick(got), pick(want)
         np.testing.assert_array_equal(g.type, w.type)
         hit = np.asarray(w.type) != 0
@@ -187,7 +204,7 @@ def test_max_hits_and_counting_below_instances_equal_the_flattened_scene(levels)
 def test_flattened_triangles_match_a_float64_brute_force():
     """The reference itself: the flattened scene's triangle hits against an exact float64 ray cast."""
     _, flat, _ = _scene(5, 1)
-    rays = _rays(5)
+    rays = _rays(5, flat=flat)
     opaque = rt.Intersector(backend="portable")
     tris = np.asarray(flat.leaf_triangle, np.float64)
     real = np.asarray(flat.leaf_geometry) == 0
@@ -225,3 +242,48 @@ def test_vmapped_scenes_with_boxes_below_instances():
         alone = intersector.intersect(rays, s)
         np.testing.assert_array_equal(np.asarray(together.type)[i], alone.type)
         np.testing.assert_array_equal(np.asarray(together.primitive_data["label"])[i], alone.primitive_data["label"])
+
+
+@pytest.mark.parametrize("levels", [1, 2])
+def test_intersection_query_below_instances_reproduces_the_intersector(levels):
+    """A query loop that applies the filter and the sphere function itself gives the intersector's hits."""
+    import jax
+    from jax import lax
+
+    structure, flat, _ = _scene(30 + levels, levels)
+    rays = _rays(30 + levels, 128, flat)
+    tags = (rt.tags.triangle_data, rt.tags.instancing, rt.tags.max_levels(levels))
+    plain = rt.Intersector(*tags, backend="portable")
+
+    def trace(ray):
+        def body(q):
+            data = q.candidate_primitive_data
+            box = rt.BoundingBoxCandidate(
+                q.candidate_primitive_id, q.candidate_geometry_id, *q.candidate_bounding_box, data
+            )
+            ok, t = rt.intersection_functions.sphere(q.candidate_ray, box)
+            q = q.commit_triangle_intersection(data["alpha"] > 0.5)
+            return q.commit_bounding_box_intersection(t, ok).next()
+
+        q = rt.intersection_query(ray, structure, plain)
+        q = lax.while_loop(lambda q: q.has_candidate, body, q.next())
+        return (
+            q.committed_type,
+            q.committed_distance,
+            q.committed_primitive_data["label"],
+            q.committed_instance_id,
+            q.committed_triangle_barycentric_coord,
+        )
+
+    kind, distance, label, instance_id, uv = jax.jit(jax.vmap(trace))(rays)
+    want = _intersector(levels).intersect(rays, structure)
+    np.testing.assert_array_equal(kind, want.type)
+    np.testing.assert_array_equal(label, want.primitive_data["label"])
+    np.testing.assert_array_equal(instance_id, want.instance_id)
+    hit = np.asarray(want.type) != 0
+    assert hit.sum() > 40
+    np.testing.assert_allclose(np.asarray(distance)[hit], np.asarray(want.distance)[hit], rtol=1e-5)
+    triangles = np.asarray(want.type) == int(rt.IntersectionType.TRIANGLE)
+    np.testing.assert_allclose(
+        np.asarray(uv)[triangles], np.asarray(want.triangle_barycentric_coord)[triangles], atol=1e-5
+    )

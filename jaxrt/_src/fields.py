@@ -162,9 +162,7 @@ def hit_fields(
         exact_distance = jnp.where(is_curve, curve_t, exact_distance)
     if "bounding_box" in kinds:
         is_box = found & view.leaf_flag(view.slot_table(leaf_tests.box_slots(view)), leaf)
-        box_t = _box_distance(
-            intersector, view, leaf, is_box, object_origin, object_direction, t_min, t_max, distance
-        )
+        box_t = _box_distance(intersector, view, leaf, is_box, object_origin, object_direction, t_min, t_max, distance)
         hit = hit & ~is_box
         kind = jnp.where(is_box, int(IntersectionType.BOUNDING_BOX), kind)
         exact_distance = jnp.where(is_box, box_t, exact_distance)

@@ -8,6 +8,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxrt import tags as tag_module
 from jaxrt._src import curves as curve_support
@@ -42,6 +43,8 @@ _GEOMETRY_TYPES = {
 _CULL_MODES = ("none", "front", "back")
 _WINDINGS = ("clockwise", "counterclockwise")
 _BACKENDS = ("auto", "portable", "gpu")
+
+
 class Intersector:
     """Intersects rays with acceleration structures (Metal's ``intersector``).
 
@@ -356,6 +359,7 @@ def _check_geometry(intersector: Intersector, structure: Any) -> None:
         if reason:
             raise ValueError(f"Intersector: backend='gpu' cannot run: {reason}")
     _check_user_functions(intersector, prims)
+    _check_opacity_options(intersector, structure)
     if intersector.has("primitive_data") and all(s.leaf_primitive_data is None for s in prims):
         raise ValueError(
             "Intersector.intersect: tags.primitive_data needs a structure built from geometries with primitive_data"
@@ -381,6 +385,24 @@ def _check_geometry(intersector: Intersector, structure: Any) -> None:
                         f"Intersector.intersect: geometry {index} has {name}={getattr(have, 'value', have)!r}, but "
                         f"the intersector declares {name}={getattr(want, 'value', want)!r}"
                     )
+
+
+def _check_opacity_options(intersector: Intersector, structure: Any) -> None:
+    """The ``OPAQUE``/``NON_OPAQUE`` instance options would change which triangles the filter sees, which the
+    traversal does not model: refuse them (where the options are concrete) rather than ignore them."""
+    if intersector.filter is None or not isinstance(structure, InstanceAccelerationStructure):
+        return
+    from jaxrt._src.instances import InstanceOptions
+
+    override = int(InstanceOptions.OPAQUE | InstanceOptions.NON_OPAQUE)
+    for table in structure.instance_tables:
+        if isinstance(table.options, jax.core.Tracer):
+            continue
+        if (np.asarray(table.options) & override).any():
+            raise NotImplementedError(
+                "Intersector.intersect: instances with the OPAQUE or NON_OPAQUE option and an intersector filter "
+                "are not supported; set the geometries' opaque flag instead"
+            )
 
 
 def _abstract_call(fn: Any, dtype, candidate: Any) -> Any:
@@ -420,7 +442,9 @@ def _check_user_functions(intersector: Intersector, prims: tuple[PrimitiveAccele
     dtype = prims[0].leaf_triangle.dtype
     with_data = [s.leaf_primitive_data for s in prims if s.leaf_primitive_data is not None]
     data = (
-        jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype), with_data[0]) if with_data else None
+        jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype), with_data[0])
+        if with_data
+        else None
     )
     int_scalar = jax.ShapeDtypeStruct((), jnp.int32)
     vector = jax.ShapeDtypeStruct((3,), dtype)

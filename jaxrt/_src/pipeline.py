@@ -219,7 +219,9 @@ def intersect(intersector: Any, rays: Ray, structure: Any) -> IntersectionResult
     chunk = INTERSECT_CHUNK
     padded = power_of_two_bucket(n) if n <= chunk else -(-n // chunk) * chunk
     if padded != n:
-        flat = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, jnp.zeros((padded - n, *a.shape[1:]), a.dtype)]), flat)
+        flat = jax.tree_util.tree_map(
+            lambda a: jnp.concatenate([a, jnp.zeros((padded - n, *a.shape[1:]), a.dtype)]), flat
+        )
     if padded <= chunk:
         result = _intersect_jit(intersector, flat, structure)
     else:

@@ -32,14 +32,15 @@ import jax.numpy as jnp
 from jax import lax
 
 from jaxrt._src import leaves as leaf_tests
+from jaxrt._src.instances import InstanceAccelerationStructure
 from jaxrt._src.primitive_data import data_at
 from jaxrt._src.primitives import triangle
 from jaxrt._src.primitives.box import ray_box
 from jaxrt._src.ray import Ray
 from jaxrt._src.result import IntersectionType
-from jaxrt._src.structures import PrimitiveAccelerationStructure
 from jaxrt._src.scene_view import SceneView, scene_view
-from jaxrt._src.traversal.step import RayConstants, State, start, visit
+from jaxrt._src.structures import PrimitiveAccelerationStructure
+from jaxrt._src.traversal.step import RayConstants, State, start, step
 
 __all__ = ["IntersectionQuery", "intersection_query"]
 
@@ -76,15 +77,17 @@ class IntersectionQuery:
     """One ray's intersection query (Metal's ``intersection_query``): an immutable pytree; every method
     returns a new query. Build it with :func:`intersection_query`."""
 
-    structure: PrimitiveAccelerationStructure
+    structure: Any
     ray: RayConstants
     direction: jax.Array
-    sheared: Any
     state: State
     pending_leaf: jax.Array  # (2,) candidate leaves found at the last node, nearest first; -1: none
     pending_distance: jax.Array  # (2,) their triangle distance or box entry distance
+    pending_chain: jax.Array  # (levels,) the instance chain of the node the pending candidates came from
     candidate: jax.Array  # the current candidate leaf; -1: none
     candidate_distance: jax.Array  # its distance (triangles) or box entry distance (boxes)
+    candidate_chain: jax.Array  # (levels,) its instance chain (global ids, -1 past it)
+    committed_chain: jax.Array  # (levels,) the committed hit's instance chain
     intersector: Any = dataclasses.field(metadata=dict(static=True))
 
     # --- stepping -----------------------------------------------------------------------------------------
@@ -124,18 +127,49 @@ class IntersectionQuery:
             leaf=jnp.where(ok, self.candidate, self.state.leaf),
             done=self.state.done | stop,
         )
+        if state.hit_chain is not None:  # opaque hits found later record their chain in the state
+            state = state._replace(hit_chain=jnp.where(ok, self.candidate_chain, state.hit_chain))
         pending = jnp.where(stop, -1, self.pending_leaf)
         return dataclasses.replace(self, state=state, pending_leaf=pending)
+
+    @property
+    def _view(self) -> SceneView:
+        return scene_view(self.structure)
+
+    def _chain(self, committed: bool) -> jax.Array:
+        if not committed:
+            return self.candidate_chain
+        return self.state.hit_chain if self.state.hit_chain is not None else self.committed_chain
+
+    def _object_ray(self, chain: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """The ray moved through ``chain`` with the traversal's arithmetic (the ray its tests saw)."""
+        origin, direction = self.ray.origin, self.direction
+        rows = self._view.traversal.instance_world_to_object
+        for level in range(chain.shape[0]):
+            m = rows[jnp.maximum(chain[level], 0)]
+            moved_origin = jnp.sum(m[:, :3] * origin, axis=-1) + m[:, 3]
+            moved_direction = jnp.sum(m[:, :3] * direction, axis=-1)
+            origin = jnp.where(chain[level] >= 0, moved_origin, origin)
+            direction = jnp.where(chain[level] >= 0, moved_direction, direction)
+        return origin, direction
+
+    def _instance_ids(self, chain: jax.Array) -> jax.Array:
+        """Each level's instance index within its structure (-1 past the chain)."""
+        view = self._view
+        if view.instances is None:
+            return chain
+        return jnp.where(chain >= 0, view.instances.local_index[jnp.maximum(chain, 0)], -1)
 
     # --- the candidate -------------------------------------------------------------------------------------
 
     def _kind(self, leaf: jax.Array) -> jax.Array:
+        view = self._view
         kinds = [
             _BOX if g.kind == "bounding_box" else _TRIANGLE if g.kind == "triangle" else int(IntersectionType.CURVE)
-            for g in self.structure.geometry_info
+            for g in view.geometry_info
         ]
-        geometry = self.structure.leaf_geometry[jnp.maximum(leaf, 0)]
-        return jnp.where(leaf >= 0, jnp.asarray(kinds, jnp.int32)[jnp.maximum(geometry, 0)], _NONE)
+        slot = view.leaves.slot[jnp.maximum(leaf, 0)]
+        return jnp.where(leaf >= 0, jnp.asarray(kinds, jnp.int32)[jnp.maximum(slot, 0)], _NONE)
 
     @property
     def candidate_type(self) -> jax.Array:
@@ -148,11 +182,16 @@ class IntersectionQuery:
 
     @property
     def candidate_primitive_id(self) -> jax.Array:
-        return self._id(self.structure.leaf_primitive, self.candidate)
+        return self._id(self._view.leaves.primitive, self.candidate)
 
     @property
     def candidate_geometry_id(self) -> jax.Array:
-        return self._id(self.structure.leaf_geometry, self.candidate)
+        return self._id(self._view.leaves.geometry, self.candidate)
+
+    @property
+    def candidate_instance_id(self) -> jax.Array:
+        """``(levels,)`` the candidate's instance at each level, within its structure (-1 past the chain)."""
+        return jnp.where(self.has_candidate, self._instance_ids(self.candidate_chain), -1)
 
     @property
     def candidate_triangle_distance(self) -> jax.Array:
@@ -161,27 +200,29 @@ class IntersectionQuery:
 
     @property
     def candidate_triangle_barycentric_coord(self) -> jax.Array:
-        return self._barycentrics(self.candidate, self.candidate_type == _TRIANGLE)[0]
+        return self._barycentrics(self.candidate, self.candidate_type == _TRIANGLE, committed=False)[0]
 
     @property
     def candidate_triangle_front_facing(self) -> jax.Array:
-        return self._barycentrics(self.candidate, self.candidate_type == _TRIANGLE)[1]
+        return self._barycentrics(self.candidate, self.candidate_type == _TRIANGLE, committed=False)[1]
 
     @property
     def candidate_bounding_box(self) -> tuple[jax.Array, jax.Array]:
         """``(lower, upper)`` of the candidate box."""
-        box = self.structure.leaf_box[jnp.maximum(self.candidate, 0)]
+        box = self._view.leaves.box[jnp.maximum(self.candidate, 0)]
         return box[0], box[1]
 
     @property
     def candidate_primitive_data(self) -> Any:
         """The candidate primitive's data pytree (``None`` for a structure without primitive data)."""
-        return data_at(self.structure.leaf_primitive_data, self.candidate, self.has_candidate)
+        return data_at(self._view.leaves.primitive_data, self.candidate, self.has_candidate)
 
     @property
     def candidate_ray(self) -> Ray:
-        """The ray in the candidate's space, with ``max_distance`` the committed distance (for box tests)."""
-        return leaf_tests.function_ray(self.ray.origin, self.direction, self.ray.t_min, self.state.distance)
+        """The ray in the candidate's object space, with ``max_distance`` the committed distance (for box
+        tests); distances are the same in every space."""
+        origin, direction = self._object_ray(self.candidate_chain)
+        return leaf_tests.function_ray(origin, direction, self.ray.t_min, self.state.distance)
 
     # --- the committed hit ---------------------------------------------------------------------------------
 
@@ -195,27 +236,37 @@ class IntersectionQuery:
 
     @property
     def committed_primitive_id(self) -> jax.Array:
-        return self._id(self.structure.leaf_primitive, self.state.leaf)
+        return self._id(self._view.leaves.primitive, self.state.leaf)
 
     @property
     def committed_geometry_id(self) -> jax.Array:
-        return self._id(self.structure.leaf_geometry, self.state.leaf)
+        return self._id(self._view.leaves.geometry, self.state.leaf)
+
+    @property
+    def committed_instance_id(self) -> jax.Array:
+        """``(levels,)`` the committed hit's instance at each level, within its structure (-1 past the chain)."""
+        return jnp.where(self.state.leaf >= 0, self._instance_ids(self._chain(committed=True)), -1)
 
     @property
     def committed_triangle_barycentric_coord(self) -> jax.Array:
-        return self._barycentrics(self.state.leaf, self.committed_type == _TRIANGLE)[0]
+        return self._barycentrics(self.state.leaf, self.committed_type == _TRIANGLE, committed=True)[0]
 
     @property
     def committed_triangle_front_facing(self) -> jax.Array:
-        return self._barycentrics(self.state.leaf, self.committed_type == _TRIANGLE)[1]
+        return self._barycentrics(self.state.leaf, self.committed_type == _TRIANGLE, committed=True)[1]
 
     @property
     def committed_primitive_data(self) -> Any:
-        return data_at(self.structure.leaf_primitive_data, self.state.leaf, self.state.leaf >= 0)
+        return data_at(self._view.leaves.primitive_data, self.state.leaf, self.state.leaf >= 0)
 
-    def _barycentrics(self, leaf: jax.Array, valid: jax.Array) -> tuple[jax.Array, jax.Array]:
-        vertices = self.structure.leaf_triangle[jnp.maximum(leaf, 0)]
-        u, v, clockwise = triangle.barycentrics(self.sheared, vertices)
+    def _barycentrics(self, leaf: jax.Array, valid: jax.Array, committed: bool) -> tuple[jax.Array, jax.Array]:
+        view = self._view
+        chain = self._chain(committed)
+        vertices = view.leaves.triangle[jnp.maximum(leaf, 0)]
+        u, v, clockwise = triangle.barycentrics(triangle.shear_ray(*self._object_ray(chain)), vertices)
+        if view.instances is not None:
+            flips = jnp.prod(jnp.where(chain >= 0, view.instances.flip[jnp.maximum(chain, 0)], 1))
+            clockwise = clockwise ^ (flips < 0)
         front = clockwise if self.intersector.front_facing_winding == "clockwise" else ~clockwise
         return jnp.where(valid, jnp.stack([u, v]), 0.0), valid & front
 
@@ -235,27 +286,37 @@ def _pop(q: IntersectionQuery) -> IntersectionQuery:
         pending_distance=jnp.stack([q.pending_distance[1], jnp.inf]).astype(t.dtype),
         candidate=jnp.where(valid, leaf, -1),
         candidate_distance=jnp.where(valid, t, jnp.inf),
+        candidate_chain=q.pending_chain,
     )
 
 
 def _advance(q: IntersectionQuery) -> IntersectionQuery:
     """One traversal step: opaque hits are committed, candidate leaves of the node become pending."""
-    s, ray, structure = q.state, q.ray, q.structure
-    view = scene_view(structure)
-    children = structure.node_children[s.node]
+    s, ray = q.state, q.ray
+    view = scene_view(q.structure)
+    scene, layout = view.traversal, view.layout
+    levels = layout.levels
+    origin, inv_direction = (s.origin, s.inv_direction) if levels else (ray.origin, ray.inv_direction)
+    path = jnp.where(jnp.arange(levels) < s.level, s.chain, -1) if levels else q.pending_chain
+    children = scene.node_children[s.node]
     box_hit, t_near = ray_box(
-        ray.origin, ray.inv_direction, ray.t_min, s.distance, structure.node_lower[s.node], structure.node_upper[s.node]
+        origin, inv_direction, ray.t_min, s.distance, scene.node_lower[s.node], scene.node_upper[s.node]
     )
-    leaves = jnp.where((children < 0) & box_hit & ~s.done, -1 - children, -1)
+    primitive = (children < 0) & (-1 - children < layout.primitive_leaves)
+    leaves = jnp.where(primitive & box_hit & ~s.done, -1 - children, -1)
     is_candidate = (leaves >= 0) & view.leaf_flag(_candidate_table(view), leaves)
     kinds = q._kind(leaves)
-    hits = triangle.watertight(
-        q.sheared, ray.t_min, s.distance, structure.leaf_triangle[jnp.maximum(leaves, 0)], q.intersector.cull
+    sheared = triangle.shear_ray(*q._object_ray(path))
+    hits = triangle.watertight(sheared, ray.t_min, s.distance, view.leaves.triangle[jnp.maximum(leaves, 0)], 0)
+    facing = (
+        jnp.where(s.level > 0, s.level_facing[jnp.maximum(s.level - 1, 0)], 1) if levels else jnp.ones((), jnp.int32)
     )
+    hits = hits._replace(hit=leaf_tests._accept_facing(hits, facing * q.intersector.cull))
     is_candidate &= (kinds == _BOX) | hits.hit
     distance = jnp.where(kinds == _BOX, jnp.maximum(t_near, ray.t_min), hits.distance)
     tester = _tester(q.intersector, view)
-    state = visit(view.traversal, view.layout, tester, ray, s, any_hit=q.intersector.accept_any_intersection)
+    any_hit = q.intersector.accept_any_intersection
+    state = step(scene, layout, tester, ray, s, any_hit=any_hit)
     keep = is_candidate & (distance <= state.distance) & ~(q.intersector.accept_any_intersection & (state.leaf >= 0))
     distance = jnp.where(keep, distance, jnp.inf)
     order = jnp.argsort(distance)
@@ -264,6 +325,7 @@ def _advance(q: IntersectionQuery) -> IntersectionQuery:
         state=state,
         pending_leaf=jnp.where(keep, leaves, -1)[order],
         pending_distance=distance[order],
+        pending_chain=path,
     )
 
 
@@ -272,10 +334,10 @@ def intersection_query(rays: Ray, structure: PrimitiveAccelerationStructure, int
     candidate. The intersector supplies cull mode, winding and ``accept_any_intersection``.
 
     Raises:
-      ValueError: ``rays`` is not a single ray. NotImplementedError: an instance structure.
+      ValueError: ``rays`` is not a single ray, or instances nested deeper than the intersector's
+        ``max_levels``.
     """
-    from jaxrt._src.instances import InstanceAccelerationStructure
-    from jaxrt._src.intersector import Intersector
+    from jaxrt._src.intersector import Intersector, _check_levels
     from jaxrt._src.pipeline import enabled_rays
 
     if not isinstance(rays, Ray):
@@ -287,10 +349,11 @@ def intersection_query(rays: Ray, structure: PrimitiveAccelerationStructure, int
         )
     if not isinstance(intersector, Intersector):
         raise TypeError(f"intersection_query: intersector must be an rt.Intersector, got {type(intersector).__name__}")
-    if isinstance(structure, InstanceAccelerationStructure):
-        raise NotImplementedError("intersection_query: instance structures are not supported yet")
-    if not isinstance(structure, PrimitiveAccelerationStructure):
-        raise TypeError(f"intersection_query: structure must be a primitive structure, got {type(structure).__name__}")
+    if not isinstance(structure, PrimitiveAccelerationStructure | InstanceAccelerationStructure):
+        raise TypeError(
+            f"intersection_query: structure must be an acceleration structure, got {type(structure).__name__}"
+        )
+    _check_levels(intersector, structure)
     enabled = enabled_rays(rays)
     origin = jnp.where(enabled, rays.origin, 0.0)
     direction = jnp.where(enabled, rays.direction, jnp.array([0.0, 0.0, 1.0], rays.direction.dtype))
@@ -300,15 +363,18 @@ def intersection_query(rays: Ray, structure: PrimitiveAccelerationStructure, int
     constants, state = start(
         _tester(intersector, view), view.layout, origin, direction, t_min, t_max, enabled, rays.mask
     )
+    no_chain = jnp.full((view.levels,), -1, jnp.int32)
     return IntersectionQuery(
         structure=structure,
         ray=constants,
         direction=direction,
-        sheared=triangle.shear_ray(origin, direction),
         state=state,
         pending_leaf=jnp.full((2,), -1, jnp.int32),
         pending_distance=jnp.full((2,), jnp.inf, origin.dtype),
+        pending_chain=no_chain,
         candidate=jnp.int32(-1),
         candidate_distance=jnp.asarray(jnp.inf, origin.dtype),
+        candidate_chain=no_chain,
+        committed_chain=no_chain,
         intersector=intersector,
     )

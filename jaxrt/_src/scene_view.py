@@ -112,7 +112,9 @@ def _concatenate_data(prims: tuple[PrimitiveAccelerationStructure, ...]) -> Any:
         if s.leaf_primitive_data is not None:
             parts.append(s.leaf_primitive_data)
         else:
-            parts.append(jax.tree_util.tree_map(lambda a, n=s.capacity: jnp.zeros((n, *a.shape[1:]), a.dtype), with_data[0]))
+            parts.append(
+                jax.tree_util.tree_map(lambda a, n=s.capacity: jnp.zeros((n, *a.shape[1:]), a.dtype), with_data[0])
+            )
     return jax.tree_util.tree_map(lambda *a: jnp.concatenate(a), *parts)
 
 
