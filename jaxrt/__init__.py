@@ -13,9 +13,11 @@ Examples:
 from jaxrt._src import versions as _versions  # noqa: F401
 
 # isort: split
-from jaxrt import intersection_functions, io, shading, tags
+from jaxrt import debug, intersection_functions, io, shading, tags
+from jaxrt._src.bvh.sah import sah_cost
 from jaxrt._src.candidate import BoundingBoxCandidate, TriangleCandidate
 from jaxrt._src.checks import BuildCheckError
+from jaxrt._src.compaction import compact
 from jaxrt._src.curves import CurveBasis, CurveEndCaps, CurveGeometry, CurveType
 from jaxrt._src.geometry import BoundingBoxGeometry, TriangleGeometry
 from jaxrt._src.instances import (
@@ -25,11 +27,13 @@ from jaxrt._src.instances import (
     build_instance_structure,
 )
 from jaxrt._src.intersector import Intersector, count_intersections
+from jaxrt._src.io.structure_file import load, save
 from jaxrt._src.numerics import offset_ray_origin
 from jaxrt._src.primitives.curve import CurveOptions
 from jaxrt._src.query import IntersectionQuery, intersection_query
 from jaxrt._src.ray import Ray
 from jaxrt._src.result import IntersectionResult, IntersectionType
+from jaxrt._src.sizes import StructureSizes, structure_sizes
 from jaxrt._src.structures import PrimitiveAccelerationStructure, build_primitive_structure, refit
 
 __version__ = "0.1.0"
@@ -52,16 +56,23 @@ __all__ = [
     "Intersector",
     "PrimitiveAccelerationStructure",
     "Ray",
+    "StructureSizes",
     "TriangleCandidate",
     "TriangleGeometry",
     "build_instance_structure",
     "build_primitive_structure",
+    "compact",
     "count_intersections",
+    "debug",
     "intersection_functions",
     "intersection_query",
     "io",
+    "load",
     "offset_ray_origin",
     "refit",
+    "sah_cost",
+    "save",
     "shading",
+    "structure_sizes",
     "tags",
 ]
