@@ -18,7 +18,11 @@ find_next_python() {
   local root candidate
   root=$(pyenv root 2>/dev/null || echo "$HOME/.pyenv")
   for candidate in python3.13 python3.12 "$root"/versions/3.13*/bin/python3 "$root"/versions/3.12*/bin/python3; do
-    if command -v "$candidate" >/dev/null 2>&1; then command -v "$candidate"; return; fi
+    # A pyenv shim exists for versions that are not selected: take a candidate only if it runs.
+    if "$candidate" -c 'import sys; assert sys.version_info >= (3, 12)' >/dev/null 2>&1; then
+      command -v "$candidate"
+      return
+    fi
   done
   return 1
 }
