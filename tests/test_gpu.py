@@ -537,7 +537,8 @@ def test_composes_with_jit_vmap_grad():
     np.testing.assert_array_equal(per_pair[0], want.primitive_id[:512])
     second = jax.tree_util.tree_map(lambda a: a[1], two)
     np.testing.assert_array_equal(per_pair[1], slow.intersect(second, other).primitive_id)
-    hlo = pairs_fn.lower(two, pair).as_text()
+    leaves, tree = jax.tree_util.tree_flatten((two, pair))
+    hlo = jax.jit(lambda *a: pairs_fn(*jax.tree_util.tree_unflatten(tree, a))).lower(*leaves).as_text()
     launches, loops = hlo.count("custom_call @triton_kernel_call"), hlo.count("stablehlo.while")
     print(f"vmap over 2 (rays, structure) pairs: {launches} kernel launch(es), {loops} while loop(s) in the HLO")
     assert launches == 1 and loops == 0  # both scenes in one launch
