@@ -25,6 +25,7 @@ from jaxrt._src.instances import (
     InstanceOptions,
     Instances,
     build_instance_structure,
+    refit,
 )
 from jaxrt._src.intersector import Intersector, count_intersections
 from jaxrt._src.io.structure_file import load, save
@@ -34,7 +35,7 @@ from jaxrt._src.query import IntersectionQuery, intersection_query
 from jaxrt._src.ray import Ray
 from jaxrt._src.result import IntersectionResult, IntersectionType
 from jaxrt._src.sizes import StructureSizes, structure_sizes
-from jaxrt._src.structures import PrimitiveAccelerationStructure, build_primitive_structure, refit
+from jaxrt._src.structures import PrimitiveAccelerationStructure, build_primitive_structure
 
 __version__ = "0.1.0"
 

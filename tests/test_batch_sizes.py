@@ -25,7 +25,7 @@ from reference import brute_force
 from test_instancing import oracle
 
 import jaxrt as rt
-from jaxrt._src import intersector as intersector_module
+from jaxrt._src import pipeline
 from jaxrt.bench.curves import host_segments, reference_hits
 
 BASE_RAYS = 400
@@ -37,8 +37,8 @@ SPHERE_MARGIN = 1e-3
 
 
 def test_the_sizes_straddle_the_traversal_constants():
-    assert BELOW < intersector_module.REFILL_LANES == AT < ABOVE
-    assert intersector_module.CPU_CHUNK < CHUNKS <= 2 * intersector_module.CPU_CHUNK
+    assert BELOW < pipeline.REFILL_LANES == AT < ABOVE
+    assert pipeline.CPU_CHUNK < CHUNKS <= 2 * pipeline.CPU_CHUNK
 
 
 class Expected(NamedTuple):

@@ -411,10 +411,6 @@ class CurveLeafArrays(NamedTuple):
     upper: jax.Array
     is_curve: jax.Array  # (C,) bool
 
-    def no_triangles(self, geometry: CurveGeometry) -> jax.Array:
-        """Zero triangles standing in for a curve geometry's leaves in ``leaf_triangle``."""
-        return jnp.zeros((geometry.primitive_count, 3, 3), self.segments.dtype)
-
 
 def curve_leaves(geometries: tuple[Any, ...], capacity: int) -> CurveLeafArrays | None:
     """Packed segments, flags and boxes of the curve geometries among ``geometries`` (``None`` without any).

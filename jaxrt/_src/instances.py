@@ -46,10 +46,10 @@ from jax import lax
 
 from jaxrt._src.bvh.boxes import child_boxes, range_boxes
 from jaxrt._src.bvh.morton import morton_codes
-from jaxrt._src.bvh.radix_tree import build_radix_tree
+from jaxrt._src.bvh.radix_tree import build_radix_tree, tree_depth_bound
 from jaxrt._src.geometry import float_dtype
 from jaxrt._src.numerics import full_precision, gamma
-from jaxrt._src.structures import PrimitiveAccelerationStructure, capacity_bucket
+from jaxrt._src.structures import PrimitiveAccelerationStructure, capacity_bucket, refit_primitives
 
 __all__ = [
     "InstanceOptions",
@@ -57,6 +57,7 @@ __all__ = [
     "InstanceTable",
     "InstanceAccelerationStructure",
     "build_instance_structure",
+    "refit",
     "refit_instances",
     "SceneArrays",
     "scene_arrays",
@@ -86,10 +87,6 @@ class InstanceOptions(enum.IntFlag):
 
 
 _ALL_OPTIONS = int(sum(InstanceOptions))
-
-
-def _owner_error(owner: str, message: str) -> ValueError:
-    return ValueError(f"{owner}: {message}")
 
 
 def _is_concrete(x: Any) -> bool:
@@ -324,7 +321,7 @@ class InstanceTable:
     @property
     def max_depth(self) -> int:
         """Bound on the depth of any leaf (as for a primitive structure)."""
-        return 31 + max(1, (self.capacity - 1).bit_length())
+        return tree_depth_bound(self.capacity)
 
 
 def _check_graph(primitive_count: int, tables: int, children: tuple[tuple[int, ...], ...]) -> None:
@@ -651,6 +648,18 @@ def build_instance_structure(
         instance_tables=(*merger.tables, table),
         children=children,
     )
+
+
+def refit(structure: Any, geometries_or_instances: Any) -> Any:
+    """Recompute the boxes of ``structure`` for moved geometry, keeping its topology (Metal's refit).
+
+    A primitive structure is refit with geometries of the same kinds and primitive counts as those it was
+    built from; tree quality degrades as primitives move far from where they were built (rebuild then). An
+    instance structure is refit with new :class:`~jaxrt.Instances` (same slot count; its children are kept).
+    """
+    if isinstance(structure, InstanceAccelerationStructure):
+        return refit_instances(structure, geometries_or_instances)
+    return refit_primitives(structure, geometries_or_instances)
 
 
 def refit_instances(structure: InstanceAccelerationStructure, instances: Instances, *, count: Any = None):

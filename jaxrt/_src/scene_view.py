@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxrt._src.bvh.boxes import empty_box
 from jaxrt._src.instances import InstanceAccelerationStructure, primitive_leaf_count, scene_arrays, scene_root
 from jaxrt._src.structures import GeometryInfo, PrimitiveAccelerationStructure
 from jaxrt._src.traversal.scene import TraversalLayout, TraversalScene
@@ -124,8 +125,8 @@ def _leaf_boxes(prims: tuple[PrimitiveAccelerationStructure, ...]) -> jax.Array 
     if not with_boxes:
         return None
     dtype = with_boxes[0].dtype
-    empty = lambda n: jnp.stack([jnp.full((n, 3), jnp.inf, dtype), jnp.full((n, 3), -jnp.inf, dtype)], axis=1)  # noqa: E731
-    return jnp.concatenate([s.leaf_box if s.leaf_box is not None else empty(s.capacity) for s in prims])
+    parts = [s.leaf_box if s.leaf_box is not None else jnp.stack(empty_box(s.capacity, dtype), axis=1) for s in prims]
+    return jnp.concatenate(parts)
 
 
 def _slots(prims: tuple[PrimitiveAccelerationStructure, ...]) -> jax.Array:
@@ -138,7 +139,7 @@ def _slots(prims: tuple[PrimitiveAccelerationStructure, ...]) -> jax.Array:
 def scene_view(structure: PrimitiveAccelerationStructure | InstanceAccelerationStructure) -> SceneView:
     """The engine's view of ``structure`` (inside or outside ``jit``)."""
     if not isinstance(structure, InstanceAccelerationStructure):
-        traversal, layout = traversal_scene(structure)
+        traversal, layout = _primitive_traversal(structure)
         leaves = LeafArrays(
             triangle=structure.leaf_triangle,
             geometry=structure.leaf_geometry,
@@ -175,6 +176,23 @@ def scene_view(structure: PrimitiveAccelerationStructure | InstanceAccelerationS
     return SceneView(traversal, layout, leaves, infos, instances)
 
 
+def _primitive_traversal(structure: PrimitiveAccelerationStructure) -> tuple[TraversalScene, TraversalLayout]:
+    dtype = structure.node_lower.dtype
+    view = TraversalScene(
+        node_lower=structure.node_lower,
+        node_upper=structure.node_upper,
+        node_children=structure.node_children,
+        leaf_triangle=structure.leaf_triangle,
+        instance_world_to_object=jnp.zeros((0, 3, 4), dtype),
+        instance_child_root=jnp.zeros((0,), jnp.int32),
+        instance_facing=jnp.zeros((0,), jnp.int32),
+        instance_mask=jnp.zeros((0,), jnp.uint32),
+        node_range=structure.node_range,
+    )
+    layout = TraversalLayout(root=0, primitive_leaves=structure.capacity, levels=0, stack_size=structure.max_depth)
+    return view, layout
+
+
 def _instanced_traversal(structure: InstanceAccelerationStructure, scene) -> tuple[TraversalScene, TraversalLayout]:
     view = TraversalScene(
         node_lower=scene.node_lower,
@@ -199,19 +217,5 @@ def traversal_scene(
     structure: PrimitiveAccelerationStructure | InstanceAccelerationStructure,
 ) -> tuple[TraversalScene, TraversalLayout]:
     """The global node arrays of ``structure`` and their static layout (inside or outside ``jit``)."""
-    if isinstance(structure, InstanceAccelerationStructure):
-        return _instanced_traversal(structure, scene_arrays(structure))
-    dtype = structure.node_lower.dtype
-    view = TraversalScene(
-        node_lower=structure.node_lower,
-        node_upper=structure.node_upper,
-        node_children=structure.node_children,
-        leaf_triangle=structure.leaf_triangle,
-        instance_world_to_object=jnp.zeros((0, 3, 4), dtype),
-        instance_child_root=jnp.zeros((0,), jnp.int32),
-        instance_facing=jnp.zeros((0,), jnp.int32),
-        instance_mask=jnp.zeros((0,), jnp.uint32),
-        node_range=structure.node_range,
-    )
-    layout = TraversalLayout(root=0, primitive_leaves=structure.capacity, levels=0, stack_size=structure.max_depth)
-    return view, layout
+    view = scene_view(structure)
+    return view.traversal, view.layout

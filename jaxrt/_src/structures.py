@@ -50,14 +50,14 @@ from jax import lax
 from jaxrt._src.bvh.boxes import child_boxes, range_boxes
 from jaxrt._src.bvh.morton import morton_codes
 from jaxrt._src.bvh.ploc import restructure
-from jaxrt._src.bvh.radix_tree import build_radix_tree
+from jaxrt._src.bvh.radix_tree import build_radix_tree, tree_depth_bound
 from jaxrt._src.curves import CurveGeometry, CurveInfo, curve_leaves
 from jaxrt._src.geometry import BoundingBoxGeometry, TriangleGeometry
 from jaxrt._src.numerics import full_precision
 from jaxrt._src.primitive_data import gather_leaf_data, primitive_data_layout
 from jaxrt._src.primitives import triangle
 
-__all__ = ["PrimitiveAccelerationStructure", "build_primitive_structure", "refit", "capacity_bucket"]
+__all__ = ["PrimitiveAccelerationStructure", "build_primitive_structure", "refit_primitives", "capacity_bucket"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -109,8 +109,8 @@ class PrimitiveAccelerationStructure:
 
     @property
     def max_depth(self) -> int:
-        """An upper bound on the depth of any leaf: 30 Morton bits plus the index tie-break bits, plus one."""
-        return 31 + max(1, (self.capacity - 1).bit_length())
+        """An upper bound on the depth of any leaf (:func:`~jaxrt._src.bvh.radix_tree.tree_depth_bound`)."""
+        return tree_depth_bound(self.capacity)
 
 
 def capacity_bucket(count: int, capacity: int | None = None) -> int:
@@ -245,7 +245,7 @@ def _build(
     real = max(count, 2)  # leaves the LBVH links
     children, node_range, order = _lbvh(morton_codes(code_lower, code_upper, valid), real)
     if quality == "high":
-        max_depth = 31 + max(1, (capacity - 1).bit_length())  # PrimitiveAccelerationStructure.max_depth
+        max_depth = tree_depth_bound(capacity)  # PrimitiveAccelerationStructure.max_depth
         children, node_range, position = restructure(lower[order], upper[order], count, children, node_range, max_depth)
         order = order[position]
     leaf_lower, leaf_upper = lower[order], upper[order]
@@ -358,17 +358,12 @@ def _refit(structure: PrimitiveAccelerationStructure, geometries: tuple[Triangle
 _refit_jit = jax.jit(_refit)
 
 
-def refit(structure: PrimitiveAccelerationStructure, geometries: Any) -> PrimitiveAccelerationStructure:
-    """Recompute the boxes of ``structure`` for moved vertices, keeping its topology (Metal's refit).
+def refit_primitives(structure: PrimitiveAccelerationStructure, geometries: Any) -> PrimitiveAccelerationStructure:
+    """Recompute the boxes of a primitive structure for moved vertices, keeping its topology (Metal's refit).
 
     The geometries must have the same kinds and primitive counts as those the structure was built from.
-    Tree quality degrades as primitives move far from where they were built; rebuild then. An instance
-    structure is refit with new :class:`~jaxrt.Instances` (same slot count; its children are kept).
+    Tree quality degrades as primitives move far from where they were built; rebuild then.
     """
-    from jaxrt._src.instances import InstanceAccelerationStructure, refit_instances
-
-    if isinstance(structure, InstanceAccelerationStructure):
-        return refit_instances(structure, geometries)
     geometries = _as_geometry_tuple(geometries)
     info = tuple(_geometry_info(g) for g in geometries)
     if info != structure.geometry_info:

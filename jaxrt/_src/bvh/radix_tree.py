@@ -87,3 +87,10 @@ def build_radix_tree(sorted_codes: jax.Array, unroll: bool | None = None) -> tup
     left = jnp.where(first == gamma, -1 - gamma, gamma)
     right = jnp.where(last == gamma + 1, -1 - (gamma + 1), gamma + 1)
     return jnp.stack([left, right], axis=-1), first, last
+
+
+def tree_depth_bound(capacity: int) -> int:
+    """The deepest leaf of a radix tree over ``capacity`` leaf slots: 30 Morton bits, then the index
+    tie-break bits, plus one (each level of Karras' tree consumes at least one bit of the key). A traversal
+    stack of this many entries cannot overflow."""
+    return 31 + max(1, (capacity - 1).bit_length())

@@ -21,7 +21,7 @@ from typing import Any, NamedTuple
 
 import jax
 
-__all__ = ["TraversalScene", "TraversalLayout", "TraversalResult", "stack_bound"]
+__all__ = ["TraversalScene", "TraversalLayout", "TraversalResult"]
 
 
 class TraversalScene(NamedTuple):
@@ -44,7 +44,7 @@ class TraversalLayout(NamedTuple):
     root: int  # global index of the root node
     primitive_leaves: int  # P: leaves below it are primitives, the rest instances
     levels: int  # instance levels (0: a primitive structure)
-    stack_size: int  # entries of the traversal stack that can never overflow (see :func:`stack_bound`)
+    stack_size: int  # entries of the traversal stack that can never overflow (see :func:`~jaxrt._src.bvh.radix_tree.tree_depth_bound`)
 
 
 class TraversalResult(NamedTuple):
@@ -57,9 +57,3 @@ class TraversalResult(NamedTuple):
     primitives_tested: jax.Array
     stack_overflow: jax.Array
     hits: Any = None  # with ``max_hits``: a :class:`~jaxrt._src.traversal.step.HitList`
-
-
-def stack_bound(capacity: int) -> int:
-    """The deepest leaf of an LBVH over ``capacity`` leaf slots: 30 Morton bits plus the index tie-break
-    bits, plus one (Karras 2012: each level of the radix tree consumes at least one bit of the key)."""
-    return 31 + max(1, (capacity - 1).bit_length())
