@@ -23,6 +23,17 @@ buffer laid out ``[program, stack entry, lane]``, so that a warp's accesses to o
 128-byte line. At most ``n_programs`` programs walk the ray blocks with a stride, so the scratch buffer is
 bounded whatever the batch size. The stack has ``STACK`` entries, the structure's depth bound, so it cannot
 overflow; a push that would is flagged anyway (and dropped).
+
+Instances (``LEVELS > 0``, a compile-time constant: with 0 the instance code is not generated): the kernel
+makes the decisions of the portable ``step.visit`` and ``step.transition``. An instance leaf is ordered and
+pushed like an inner node when its mask meets the ray's; a stack entry keeps its level in its low ``SHIFT``
+bits (the portable path derives it from the depth at which each level was entered: the same level). When the
+next entry is an instance, or belongs to a shallower level than the loaded ray, a warp-uniform branch loads
+that level's ray (origin, unnormalised direction and facing, kept per lane in a ``[program, level, field,
+lane]`` scratch buffer), moves it by the instance's world-to-object rows in the portable path's order of
+operations, and recomputes the reciprocal direction and shear with correctly rounded divisions, so every
+level sees the values the portable path computes. Each new nearest hit copies the current instance chain
+into the output.
 """
 
 from __future__ import annotations
