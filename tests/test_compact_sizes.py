@@ -41,7 +41,7 @@ def built_bytes(structure) -> dict[str, int]:
 
 
 # Each primitive count compiles its own build, so a few counts rather than a random sweep.
-@pytest.mark.parametrize(("count", "capacity"), [(1, None), (17, None), (40, None), (17, 64)])
+@pytest.mark.parametrize(("count", "capacity"), [(1, None), (17, None), (17, 64)])
 def test_sizes_equal_the_bytes_the_build_allocates(count, capacity):
     """(The clustering build has the same layout; its sizes are checked on the scenes below.)"""
     geometries = triangle_geometries(count, seed=count)
@@ -116,7 +116,7 @@ def reachable_leaves(children: np.ndarray) -> list[int]:
 
 
 @pytest.mark.parametrize("quality", ["fast", "high"])
-@pytest.mark.parametrize("count", [1, 2, 3, 5, 17])
+@pytest.mark.parametrize("count", [1, 3, 17])
 def test_compact_capacity_and_small_trees(count, quality):
     """The kept rows are the original's (the root's padding child excepted); every real leaf is reached once."""
     structure = triangle_case(count, seed=count, quality=quality).structure
