@@ -21,7 +21,7 @@ import pytest
 from reference import edges, icosphere
 
 import jaxrt as rt
-from jaxrt._src.intersector import _resolve_backend
+from jaxrt._src.pipeline import resolve_backend as _resolve_backend
 from jaxrt._src.primitives import triangle
 from jaxrt._src.traversal import gpu, packed
 

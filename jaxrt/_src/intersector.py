@@ -465,8 +465,3 @@ def _check_user_functions(intersector: Intersector, prims: tuple[PrimitiveAccele
         out = jax.eval_shape(intersector.filter, candidate)
         if not _is_scalar(out):
             raise TypeError(f"Intersector: the filter must return one scalar accept flag per candidate, got {out!r}")
-
-
-# Names older code imported from here.
-_resolve_backend = pipeline.resolve_backend
-_enabled = pipeline.enabled_rays

@@ -40,7 +40,8 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxrt as rt
-from jaxrt._src.intersector import _enabled, _resolve_backend
+from jaxrt._src.pipeline import enabled_rays as _enabled
+from jaxrt._src.pipeline import resolve_backend as _resolve_backend
 from jaxrt._src.traversal import gpu, packed
 from jaxrt.bench.peers import Embree, embree_unavailable_reason
 from jaxrt.bench.rays import RayBatch, diffuse_rays, primary_rays, shadow_rays
