@@ -941,7 +941,13 @@ def test_vmap_over_ray_batches_equals_one_batch():
     for (path, a), b in zip(
         jax.tree_util.tree_leaves_with_path(flat), jax.tree_util.tree_leaves(dict(eager)), strict=True
     ):
-        np.testing.assert_array_equal(a, np.asarray(b), err_msg=jax.tree_util.keystr(path))
+        name = jax.tree_util.keystr(path)
+        if "barycentric" in name:
+            # Recomputed after the traversal in a differently batched program: XLA may contract the edge
+            # functions' multiply-adds differently (seen with jax 0.12), a few 1e-6 on ill-conditioned hits.
+            np.testing.assert_allclose(a, np.asarray(b), rtol=0, atol=1e-5, err_msg=name)
+        else:  # decisions, ids and distances come from the traversal: identical
+            np.testing.assert_array_equal(a, np.asarray(b), err_msg=name)
 
 
 # --- bad inputs ---------------------------------------------------------------------------------------------------

@@ -15,7 +15,7 @@ import textwrap
 import numpy as np
 
 import jaxrt as rt
-from jaxrt._src import intersector as intersector_module
+from jaxrt._src import pipeline as pipeline
 
 
 def _scene_and_rays(n_rays: int, seed: int = 0):
@@ -44,9 +44,9 @@ def test_batches_over_the_chunk_size_are_traced_in_chunks(monkeypatch):
     intersector = rt.Intersector(rt.tags.triangle_data)
     whole = intersector.intersect(rays, structure)
     calls = []
-    chunked = intersector_module._intersect_chunks
-    monkeypatch.setattr(intersector_module, "_intersect_chunks", lambda *a: calls.append(a[3]) or chunked(*a))
-    monkeypatch.setattr(intersector_module, "INTERSECT_CHUNK", 64)
+    chunked = pipeline._intersect_chunks
+    monkeypatch.setattr(pipeline, "_intersect_chunks", lambda *a: calls.append(a[3]) or chunked(*a))
+    monkeypatch.setattr(pipeline, "INTERSECT_CHUNK", 64)
     parts = intersector.intersect(rays, structure)  # 300 rays: padded to 320, five chunks of 64
     assert calls == [64]
     assert parts.distance.shape == (300,)
