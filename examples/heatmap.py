@@ -1,4 +1,4 @@
-"""Traversal heatmaps of the Stanford bunny (Xcode's acceleration-structure viewer, "traversal" mode).
+"""Traversal heatmaps of the Stanford bunny and Sponza (Xcode's acceleration-structure viewer, "traversal" mode).
 
 Renders ``nodes_visited`` per primary ray for the LBVH, for the clustering build (``quality="high"``) and for
 the LBVH refit after a twist of the mesh (whose boxes overlap), on one colour scale, and prints the mean work.
@@ -56,7 +56,23 @@ def main() -> int:
             f"max {c.max():4d} -> {out / f'heatmap_{name}.png'}"
         )
     print(f"colour scale: 0 (dark blue) to {vmax:.0f} (dark red) nodes")
+    _interior(args.size, out)
     return 0
+
+
+def _interior(size: int, out: Path) -> None:
+    """The same view of an interior: Sponza from its bench camera, on a scale of its own."""
+    try:
+        sponza = shared_mesh("sponza")
+    except FileNotFoundError as error:
+        print(f"heatmap: Sponza is not available ({error}); no interior rendered", file=sys.stderr)
+        return
+    rays = rt.shading.pinhole_rays(size, size, eye=sponza.eye, target=sponza.target, fov_degrees=60.0)
+    structure = rt.build_primitive_structure(rt.TriangleGeometry(sponza.vertices, sponza.indices))
+    c = debug.traversal_heatmap(structure, rays)[1]
+    image = np.concatenate([debug.heatmap(c), debug.colorbar(size, 6)], axis=0)
+    debug.write_png(out / "heatmap_sponza.png", image)
+    print(f"sponza: nodes visited per ray: mean {c.mean():5.1f}, max {c.max():4d} -> {out / 'heatmap_sponza.png'}")
 
 
 if __name__ == "__main__":
