@@ -73,7 +73,7 @@ class TriangleLeaves:
 
     def __call__(self, context, leaves, t_min, t_max):
         hit, accept = self.test(context, leaves, t_min, t_max)
-        return accept, jnp.where(accept, hit.distance, jnp.inf)
+        return accept, hit.distance  # the traversal reads the distance only where accepted
 
 
 def filtered_slots(intersector: Any, view: SceneView) -> tuple[int, ...]:

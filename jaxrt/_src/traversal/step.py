@@ -108,11 +108,11 @@ class RayConstants(NamedTuple):
     """What a ray keeps for its whole traversal (world space)."""
 
     origin: jax.Array
-    direction: jax.Array
+    direction: jax.Array | None  # with instances only
     inv_direction: jax.Array
     context: Any  # the leaf tester's constants for the world-space ray
     t_min: jax.Array
-    mask: jax.Array  # uint32, AND-ed with instance masks
+    mask: jax.Array | None  # uint32, AND-ed with instance masks (with instances only)
 
 
 class State(NamedTuple):
@@ -164,7 +164,16 @@ def start(
     int_zero = jnp.zeros((), jnp.int32)
     inv_direction = safe_reciprocal(direction)
     context = tester.prepare(origin, direction, jnp.ones((), jnp.int32) if levels else None)
-    ray = RayConstants(origin, direction, inv_direction, context, t_min, jnp.asarray(mask, jnp.uint32))
+    # Without instances the direction and the mask are never read again: not carried (the refill driver
+    # selects every carried field of a lane that takes a new ray).
+    ray = RayConstants(
+        origin,
+        direction if levels else None,
+        inv_direction,
+        context,
+        t_min,
+        jnp.asarray(mask, jnp.uint32) if levels else None,
+    )
     hits = None
     if max_hits is not None:
         chains = jnp.full((max_hits, levels), -1, jnp.int32) if levels else None
