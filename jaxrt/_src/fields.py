@@ -149,11 +149,7 @@ def hit_fields(
     kind = jnp.full(found.shape, int(IntersectionType.NONE), jnp.int32)
     exact_distance = jnp.full(found.shape, jnp.inf, dtype)
     if "curve" in kinds:  # curve hits: re-tested (in object space) differentiably
-        config = curve_support.curve_configuration(
-            tuple(g.curve for g in view.geometry_info if g.curve is not None),
-            intersector.curve_type,
-            intersector.curve_options,
-        )
+        config = leaf_tests.curve_configuration(intersector, view)
         is_curve, curve_t, curve_u = curve_support.curve_hit_fields(
             leaves.curve, leaves.curve_flags, leaf, hit, object_origin, object_direction, t_min, t_max, distance, config
         )

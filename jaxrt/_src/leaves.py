@@ -36,6 +36,7 @@ __all__ = [
     "TriangleLeaves",
     "box_candidate",
     "box_slots",
+    "curve_configuration",
     "call_function",
     "filtered_slots",
     "function_ray",
@@ -203,6 +204,14 @@ class KindSwitch:
         return hit, distance
 
 
+def curve_configuration(intersector: Any, view: SceneView) -> dict:
+    """The static curve code choices for every curve geometry of the scene (all levels share them)."""
+    from jaxrt._src import curves as curve_support
+
+    infos = tuple(g.curve for g in view.geometry_info if g.curve is not None)
+    return curve_support.curve_configuration(infos, intersector.curve_type, intersector.curve_options)
+
+
 def leaf_tester(intersector: Any, view: SceneView, *, user_code: bool = True) -> Any:
     """The leaf tests the scene's kinds need: triangles (filtered where non-opaque), curves, boxes.
 
@@ -224,11 +233,7 @@ def leaf_tester(intersector: Any, view: SceneView, *, user_code: bool = True) ->
         else:
             testers["triangle"] = TriangleLeaves(detached(view.leaves.triangle), intersector.cull)
     if "curve" in kinds:
-        config = curve_support.curve_configuration(
-            tuple(g.curve for g in view.geometry_info if g.curve is not None),
-            intersector.curve_type,
-            intersector.curve_options,
-        )
+        config = curve_configuration(intersector, view)
         testers["curve"] = curve_support.CurveLeaves(detached(view.leaves.curve), view.leaves.curve_flags, **config)
     if "bounding_box" in kinds and user_code:
         testers["bounding_box"] = BoxLeaves(view, intersector.intersection_functions or ())

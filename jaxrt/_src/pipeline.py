@@ -36,7 +36,6 @@ __all__ = [
     "kernel_declines",
     "power_of_two_bucket",
     "resolve_backend",
-    "sanitize",
     "trace",
 ]
 
@@ -79,9 +78,6 @@ class SanitizedRays:
         self.t_min = jnp.where(on, rays.min_distance, 0.0)
         self.t_max = jnp.where(on, rays.max_distance, 0.0)
         self.mask = rays.mask
-
-
-sanitize = SanitizedRays
 
 
 def kernel_declines(intersector: Any, geometry_info: tuple) -> str | None:

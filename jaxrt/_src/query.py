@@ -25,6 +25,7 @@ query are not differentiable (trace again with ``Intersector.intersect`` for gra
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any
 
 import jax
@@ -40,7 +41,7 @@ from jaxrt._src.ray import Ray
 from jaxrt._src.result import IntersectionType
 from jaxrt._src.scene_view import SceneView, scene_view
 from jaxrt._src.structures import PrimitiveAccelerationStructure
-from jaxrt._src.traversal.step import RayConstants, State, start, step
+from jaxrt._src.traversal.step import RayConstants, State, select_level, start, step
 
 __all__ = ["IntersectionQuery", "intersection_query"]
 
@@ -132,8 +133,9 @@ class IntersectionQuery:
         pending = jnp.where(stop, -1, self.pending_leaf)
         return dataclasses.replace(self, state=state, pending_leaf=pending)
 
-    @property
+    @functools.cached_property
     def _view(self) -> SceneView:
+        """The scene view, built once per query object (every accessor and step reads it)."""
         return scene_view(self.structure)
 
     def _chain(self, committed: bool) -> jax.Array:
@@ -293,7 +295,7 @@ def _pop(q: IntersectionQuery) -> IntersectionQuery:
 def _advance(q: IntersectionQuery) -> IntersectionQuery:
     """One traversal step: opaque hits are committed, candidate leaves of the node become pending."""
     s, ray = q.state, q.ray
-    view = scene_view(q.structure)
+    view = q._view
     scene, layout = view.traversal, view.layout
     levels = layout.levels
     origin, inv_direction = (s.origin, s.inv_direction) if levels else (ray.origin, ray.inv_direction)
@@ -306,13 +308,12 @@ def _advance(q: IntersectionQuery) -> IntersectionQuery:
     leaves = jnp.where(primitive & box_hit & ~s.done, -1 - children, -1)
     is_candidate = (leaves >= 0) & view.leaf_flag(_candidate_table(view), leaves)
     kinds = q._kind(leaves)
+    # The candidate triangles' own test, with the facing of the level walked (as the traversal's tester).
     sheared = triangle.shear_ray(*q._object_ray(path))
-    hits = triangle.watertight(sheared, ray.t_min, s.distance, view.leaves.triangle[jnp.maximum(leaves, 0)], 0)
-    facing = (
-        jnp.where(s.level > 0, s.level_facing[jnp.maximum(s.level - 1, 0)], 1) if levels else jnp.ones((), jnp.int32)
-    )
-    hits = hits._replace(hit=leaf_tests._accept_facing(hits, facing * q.intersector.cull))
-    is_candidate &= (kinds == _BOX) | hits.hit
+    context = (sheared, select_level(s.level, jnp.ones((), jnp.int32), s.level_facing)) if levels else sheared
+    triangles = leaf_tests.TriangleLeaves(view.leaves.triangle, q.intersector.cull)
+    hits, accepted = triangles.test(context, leaves, ray.t_min, s.distance)
+    is_candidate &= (kinds == _BOX) | accepted
     distance = jnp.where(kinds == _BOX, jnp.maximum(t_near, ray.t_min), hits.distance)
     tester = _tester(q.intersector, view)
     any_hit = q.intersector.accept_any_intersection
@@ -338,7 +339,7 @@ def intersection_query(rays: Ray, structure: PrimitiveAccelerationStructure, int
         ``max_levels``.
     """
     from jaxrt._src.intersector import Intersector, _check_levels
-    from jaxrt._src.pipeline import enabled_rays
+    from jaxrt._src.pipeline import SanitizedRays
 
     if not isinstance(rays, Ray):
         raise TypeError(f"intersection_query: rays must be an rt.Ray, got {type(rays).__name__}")
@@ -354,14 +355,11 @@ def intersection_query(rays: Ray, structure: PrimitiveAccelerationStructure, int
             f"intersection_query: structure must be an acceleration structure, got {type(structure).__name__}"
         )
     _check_levels(intersector, structure)
-    enabled = enabled_rays(rays)
-    origin = jnp.where(enabled, rays.origin, 0.0)
-    direction = jnp.where(enabled, rays.direction, jnp.array([0.0, 0.0, 1.0], rays.direction.dtype))
-    t_min = jnp.where(enabled, rays.min_distance, 0.0)
-    t_max = jnp.where(enabled, rays.max_distance, 0.0)
+    ray = SanitizedRays(rays)
+    origin, direction = ray.origin, ray.direction
     view = scene_view(structure)
     constants, state = start(
-        _tester(intersector, view), view.layout, origin, direction, t_min, t_max, enabled, rays.mask
+        _tester(intersector, view), view.layout, origin, direction, ray.t_min, ray.t_max, ray.enabled, ray.mask
     )
     no_chain = jnp.full((view.levels,), -1, jnp.int32)
     return IntersectionQuery(

@@ -46,6 +46,7 @@ __all__ = [
     "SCRATCH",
     "needs_transition",
     "result",
+    "select_level",
     "start",
     "step",
     "transition",
@@ -312,7 +313,7 @@ def visit(
     )
 
 
-def _select_level(level: jax.Array, top: jax.Array, per_level: jax.Array) -> jax.Array:
+def select_level(level: jax.Array, top: jax.Array, per_level: jax.Array) -> jax.Array:
     """``top`` at level 0, else ``per_level[level - 1]`` (selects: the level count is small and static)."""
     out = top
     for index in range(per_level.shape[0]):
@@ -331,9 +332,9 @@ def transition(scene: TraversalScene, tester: LeafTester, ray: RayConstants, s: 
     levels = s.chain.shape[0]
     instances = scene.instance_mask.shape[0]
     need = needs_transition(s)
-    base_origin = _select_level(s.level, ray.origin, s.level_origin)
-    base_direction = _select_level(s.level, ray.direction, s.level_direction)
-    base_facing = _select_level(s.level, jnp.ones((), jnp.int32), s.level_facing)
+    base_origin = select_level(s.level, ray.origin, s.level_origin)
+    base_direction = select_level(s.level, ray.direction, s.level_direction)
+    base_facing = select_level(s.level, jnp.ones((), jnp.int32), s.level_facing)
     entering = need & (s.node < 0)
     g = jnp.clip(-1 - s.node, 0, instances - 1)
     m = scene.instance_world_to_object[g]
