@@ -287,9 +287,10 @@ def load_gltf(path: str | os.PathLike[str], *, scene: int | None = None, hierarc
       A :class:`GltfScene`.
 
     Raises:
-      ImportError: pygltflib is missing (``pip install 'jaxrt[gltf]'``). FileNotFoundError: the file or one of
-      its buffers is missing. ValueError: a node cycle (naming the nodes), an index or accessor out of range,
-      a sparse accessor, non-finite positions, or a scene without triangles.
+      ImportError: pygltflib is missing (``pip install 'jaxrt[gltf]'``).
+      FileNotFoundError: the file or one of its buffers is missing.
+      ValueError: a node cycle (naming the nodes), an index or accessor out of range, a sparse accessor,
+        non-finite positions, or a scene without triangles.
 
     Examples:
       >>> import jaxrt as rt  # doctest: +SKIP
