@@ -11,8 +11,6 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-from mkdocs.structure.files import File
-
 SECTION = "API reference"
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -45,6 +43,8 @@ def on_config(config):
 
 def on_files(files, config):
     """Add a generated page for each public module that has no page in docs/reference/."""
+    from mkdocs.structure.files import File
+
     for module in public_modules():
         if files.get_file_from_path(_page(module)) is None:
             content = f"# `{module}`\n\n::: {module}\n"
