@@ -87,7 +87,7 @@ def test_grouped_parameters_are_split():
     Returns:
       a, b: not an argument list.
     """
-    assert split(text) == """Camera rays.
+    expected = """Camera rays.
 
     Args:
       width: image size
@@ -98,4 +98,5 @@ def test_grouped_parameters_are_split():
 
     Returns:
       a, b: not an argument list.
-    """.rstrip("\n")
+    """
+    assert split(text) == expected.rstrip("\n")
