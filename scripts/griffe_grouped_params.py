@@ -1,9 +1,14 @@
-"""Griffe extension for the API reference: grouped parameters in Google-style docstrings.
+"""Griffe extension for the API reference: jaxrt's docstring conventions in Google-style Markdown.
 
-jaxrt's docstrings document parameters that go together on one line (``width, height: image size``). The
-Google-style parser of griffe reads one name per entry and would report ``width, height`` as an unknown
-parameter; this extension rewrites such an entry, in ``Args:`` sections only, into one entry per name with the
-same description before the docstring is parsed, so that every name is still checked against the signature.
+- **Grouped parameters.** Parameters that go together share one entry (``width, height: image size``). The
+  Google-style parser of griffe reads one name per entry and would report ``width, height`` as an unknown
+  parameter; such an entry, in ``Args:`` sections only, becomes one entry per name with the same description,
+  so that every name is still checked against the signature.
+- **Sphinx roles.** ``:class:`~jaxrt.Ray```, ``:func:`load_hair``` and the like become code that links to the
+  named object where the reference documents it (an optional cross-reference: private or unknown targets stay
+  plain code, never a broken link). A bare name is looked up in the docstring's own module first.
+
+Both rewrite the docstring text before it is parsed.
 """
 
 from __future__ import annotations
@@ -13,6 +18,7 @@ from typing import Any
 
 import griffe
 
+_ROLE = re.compile(r":(?:func|class|mod|data|meth|attr|exc|obj):`(~?)([\w.]+)`")
 _SECTION = re.compile(r"^(\s*)(Args|Arguments|Parameters|Params|Other Parameters):\s*$")
 _GROUPED = re.compile(r"^(\s+)([A-Za-z_]\w*(?:\s*,\s*[A-Za-z_]\w*)+)\s*:(.*)$")
 
@@ -52,9 +58,25 @@ def split_grouped_parameters(text: str) -> str:
     return "\n".join(out)
 
 
+def replace_roles(text: str, module: str = "") -> str:
+    """``text`` with Sphinx cross-reference roles turned into optional autorefs around code spans.
+
+    ``module`` qualifies bare names (``load_hair`` in ``jaxrt._src.io.hair`` is ``jaxrt._src.io.hair.load_hair``).
+    """
+
+    def link(match: re.Match) -> str:
+        short, target = match.groups()
+        title = target.rsplit(".", 1)[-1] if short else target
+        identifier = target if "." in target or not module else f"{module}.{target}"
+        return f'<autoref identifier="{identifier}" optional><code>{title}</code></autoref>'
+
+    return _ROLE.sub(link, text)
+
+
 class GroupedParameters(griffe.Extension):
-    """Splits grouped parameter entries of every docstring as it is loaded."""
+    """Rewrites every docstring as it is loaded: grouped parameters split, Sphinx roles as links."""
 
     def on_instance(self, *, obj: griffe.Object, **kwargs: Any) -> None:
         if obj.docstring is not None:
-            obj.docstring.value = split_grouped_parameters(obj.docstring.value)
+            module = obj.module.path if not obj.is_module else obj.path
+            obj.docstring.value = replace_roles(split_grouped_parameters(obj.docstring.value), module)

@@ -100,3 +100,14 @@ def test_grouped_parameters_are_split():
       a, b: not an argument list.
     """
     assert split(text) == expected.rstrip("\n")
+
+
+def test_sphinx_roles_become_optional_links():
+    pytest.importorskip("griffe")
+    replace = load_script("griffe_grouped_params").replace_roles
+    text = "A :class:`~jaxrt.Ray` batch; see :func:`load_hair` and :mod:`jaxrt.io`."
+    assert replace(text, "jaxrt._src.io.hair") == (
+        'A <autoref identifier="jaxrt.Ray" optional><code>Ray</code></autoref> batch; see '
+        '<autoref identifier="jaxrt._src.io.hair.load_hair" optional><code>load_hair</code></autoref> and '
+        '<autoref identifier="jaxrt.io" optional><code>jaxrt.io</code></autoref>.'
+    )
