@@ -58,17 +58,20 @@ def split_grouped_parameters(text: str) -> str:
     return "\n".join(out)
 
 
-def replace_roles(text: str, module: str = "") -> str:
+def replace_roles(text: str, module: str = "", owner: str = "") -> str:
     """``text`` with Sphinx cross-reference roles turned into optional autorefs around code spans.
 
-    ``module`` qualifies bare names (``load_hair`` in ``jaxrt._src.io.hair`` is ``jaxrt._src.io.hair.load_hair``).
+    A bare name is looked up as a member of ``owner`` (the class of a method's docstring) first, then of
+    ``module`` (``load_hair`` in ``jaxrt._src.io.hair`` is ``jaxrt._src.io.hair.load_hair``).
     """
 
     def link(match: re.Match) -> str:
         short, target = match.groups()
         title = target.rsplit(".", 1)[-1] if short else target
-        identifier = target if "." in target or not module else f"{module}.{target}"
-        return f'<autoref identifier="{identifier}" optional><code>{title}</code></autoref>'
+        scopes = [scope for scope in (owner, module) if scope] if "." not in target else []
+        candidates = [f"{scope}.{target}" for scope in scopes] or [target]
+        slug = f' slug="{candidates[1]}"' if len(candidates) > 1 else ""
+        return f'<autoref identifier="{candidates[0]}"{slug} optional><code>{title}</code></autoref>'
 
     return _ROLE.sub(link, text)
 
@@ -78,5 +81,7 @@ class GroupedParameters(griffe.Extension):
 
     def on_instance(self, *, obj: griffe.Object, **kwargs: Any) -> None:
         if obj.docstring is not None:
-            module = obj.module.path if not obj.is_module else obj.path
-            obj.docstring.value = replace_roles(split_grouped_parameters(obj.docstring.value), module)
+            module = obj.path if obj.is_module else obj.module.path
+            owner = obj.path if obj.is_class else (obj.parent.path if obj.parent and obj.parent.is_class else "")
+            text = split_grouped_parameters(obj.docstring.value)
+            obj.docstring.value = replace_roles(text, module, owner)

@@ -111,3 +111,5 @@ def test_sphinx_roles_become_optional_links():
         '<autoref identifier="jaxrt._src.io.hair.load_hair" optional><code>load_hair</code></autoref> and '
         '<autoref identifier="jaxrt.io" optional><code>jaxrt.io</code></autoref>.'
     )
+    method = replace(":meth:`next`", "jaxrt._src.query", "jaxrt._src.query.IntersectionQuery")
+    assert 'identifier="jaxrt._src.query.IntersectionQuery.next" slug="jaxrt._src.query.next"' in method
