@@ -76,7 +76,7 @@ def test_reference_covers_public_modules():
 
 def test_grouped_parameters_are_split():
     pytest.importorskip("griffe")
-    split = load_script("griffe_grouped_params").split_grouped_parameters
+    split = load_script("griffe_jaxrt").split_grouped_parameters
     text = """Camera rays.
 
     Args:
@@ -104,7 +104,7 @@ def test_grouped_parameters_are_split():
 
 def test_sphinx_roles_become_optional_links():
     pytest.importorskip("griffe")
-    replace = load_script("griffe_grouped_params").replace_roles
+    replace = load_script("griffe_jaxrt").replace_roles
     text = "A :class:`~jaxrt.Ray` batch; see :func:`load_hair` and :mod:`jaxrt.io`."
     assert replace(text, "jaxrt._src.io.hair") == (
         'A <autoref identifier="jaxrt.Ray" optional><code>Ray</code></autoref> batch; see '
@@ -113,3 +113,10 @@ def test_sphinx_roles_become_optional_links():
     )
     method = replace(":meth:`next`", "jaxrt._src.query", "jaxrt._src.query.IntersectionQuery")
     assert 'identifier="jaxrt._src.query.IntersectionQuery.next" slug="jaxrt._src.query.next"' in method
+
+
+def test_plumbing_members_are_left_out():
+    pytest.importorskip("griffe")
+    is_plumbing = load_script("griffe_jaxrt").is_plumbing
+    assert [name for name in ("__repr__", "__new__", "tree_flatten", "tree_unflatten") if not is_plumbing(name)] == []
+    assert [name for name in ("__init__", "__call__", "intersect", "_private") if is_plumbing(name)] == []

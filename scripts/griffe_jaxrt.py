@@ -9,6 +9,10 @@
   plain code, never a broken link). A bare name is looked up in the docstring's own module first.
 
 Both rewrite the docstring text before it is parsed.
+
+- **Plumbing.** Special methods (``__repr__``, ``__new__``, ...; ``__init__``, merged into its class's entry,
+  and ``__call__`` stay) and the pytree protocol
+  (``tree_flatten``, ``tree_unflatten``) of the public classes are left out of the reference.
 """
 
 from __future__ import annotations
@@ -76,8 +80,22 @@ def replace_roles(text: str, module: str = "", owner: str = "") -> str:
     return _ROLE.sub(link, text)
 
 
-class GroupedParameters(griffe.Extension):
-    """Rewrites every docstring as it is loaded: grouped parameters split, Sphinx roles as links."""
+PLUMBING = frozenset(["tree_flatten", "tree_unflatten"])
+
+
+def is_plumbing(name: str) -> bool:
+    """Whether a class member is left out of the reference (special methods, pytree protocol)."""
+    special = name.startswith("__") and name.endswith("__") and name not in ("__init__", "__call__")
+    return special or name in PLUMBING
+
+
+class JaxrtDocstrings(griffe.Extension):
+    """Rewrites every docstring as it is loaded (grouped parameters split, Sphinx roles as links) and drops
+    the plumbing members of classes."""
+
+    def on_class_members(self, *, cls: griffe.Class, **kwargs: Any) -> None:
+        for name in [name for name in cls.members if is_plumbing(name)]:
+            cls.del_member(name)
 
     def on_instance(self, *, obj: griffe.Object, **kwargs: Any) -> None:
         if obj.docstring is not None:
