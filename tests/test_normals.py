@@ -66,15 +66,13 @@ CURVE_CONFIGS = [("bezier", 3), ("bezier", 4), ("bspline", 3), ("bspline", 4), (
 def _curve_scene():
     rng = np.random.default_rng(7)
     geometries, segments = [], []
-    for k, (curve_type) in enumerate(("round", "flat")):
+    for k, curve_type in enumerate(("round", "flat")):
         for j, (basis, count) in enumerate(CURVE_CONFIGS):
             base = np.array([3.0 * j, 3.0 * k, 0.0])
             points = base + np.cumsum(rng.normal(scale=0.5, size=(count, 3)), axis=0)
             radii = rng.uniform(0.15, 0.25, count)
             geometries.append(
-                rt.CurveGeometry(
-                    points, radii, [0], basis=basis, control_point_count=count, curve_type=curve_type
-                )
+                rt.CurveGeometry(points, radii, [0], basis=basis, control_point_count=count, curve_type=curve_type)
             )
             bezier = bezier_matrix(basis, count) @ np.concatenate([points, radii[:, None]], axis=1)
             segments.append(bezier)  # (4, 4) float64 x, y, z, radius
