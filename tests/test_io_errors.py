@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import base64
 import json
+import struct
 import warnings
 
 import numpy as np
@@ -81,3 +82,14 @@ def test_several_scenes_warn_and_read_the_default(tmp_path):
         warnings.simplefilter("error")
         vertices, indices = rt.io.load_mesh(_gltf(tmp_path / "plain.gltf"))
     assert indices.shape == (1, 3)
+
+
+def test_gpu_instancing_in_a_glb_raises(tmp_path):
+    document = json.loads(_gltf(tmp_path / "instanced.gltf", instancing=True).read_text()).copy()
+    chunk = json.dumps(document).encode()
+    chunk += b" " * (-len(chunk) % 4)
+    header = b"glTF" + struct.pack("<II", 2, 12 + 8 + len(chunk))
+    path = tmp_path / "instanced.glb"
+    path.write_bytes(header + struct.pack("<II", len(chunk), 0x4E4F534A) + chunk)
+    with pytest.raises(ValueError, match=r"instanced\.glb.*EXT_mesh_gpu_instancing.*load_gltf"):
+        rt.io.load_mesh(path)
