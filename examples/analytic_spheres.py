@@ -60,7 +60,7 @@ def scene(rng):
 def normals(rays, hit):
     """Shading normals from the hit's primitive data: exact for spheres, disks and cylinders, stored for the ground."""
     d = hit.primitive_data
-    p = rt.shading.hit_points(rays, hit)
+    p = rt.shading.hit_points(rays, hit, miss_value=0.0)
     sphere = (p - d["center"]) / jnp.maximum(d["radius"], 1e-6)[:, None]
     axis = d["p1"] - d["p0"]
     s = jnp.sum((p - d["p0"]) * axis, -1, keepdims=True) / jnp.maximum(jnp.sum(axis * axis, -1, keepdims=True), 1e-12)
@@ -115,7 +115,7 @@ def main(argv=None) -> dict:
     def render(rays):
         hit = primary.intersect(rays, structure)
         n, found = normals(rays, hit), hit.type != 0
-        origin = rt.offset_ray_origin(rt.shading.hit_points(rays, hit), n)
+        origin = rt.offset_ray_origin(rt.shading.hit_points(rays, hit, miss_value=0.0), n)
         lit = found & (jnp.sum(n * SUN, -1) > 0)
         blocked = shadow.intersect(
             rt.Ray(origin, jnp.broadcast_to(SUN, origin.shape), 0.0, jnp.where(lit, 50.0, -1.0)), structure

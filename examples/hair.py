@@ -98,7 +98,7 @@ def main(argv=None) -> dict:
 
     is_curve = hits.type == rt.IntersectionType.CURVE
     is_mesh = hits.type == rt.IntersectionType.TRIANGLE
-    points = rt.shading.hit_points(rays, hits)
+    points = rt.shading.hit_points(rays, hits, miss_value=0.0)
     light = jnp.asarray(LIGHT, jnp.float32)
     # Shadows: one ray per hit towards the light, started a little off the surface.
     shadow = rt.Ray(points + 1e-3 * light, jnp.broadcast_to(light, points.shape), max_distance=1e3)

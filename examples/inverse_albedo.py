@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from _progress import progress
 
 import jaxrt as rt
 
@@ -123,6 +124,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--smoothness", type=float, default=1e-3, help="weight of the texture smoothness prior")
     parser.add_argument("--procedural", action="store_true", help="use the procedural blob, not the bunny")
     parser.add_argument("--out", default="out/inverse_albedo")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -182,7 +184,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     before, image_before = errors(params)
     losses, clock = [], time.perf_counter()
-    for _ in range(args.iterations):
+    for _ in progress(range(args.iterations), quiet=args.quiet, desc="optimising"):
         params, state, loss = step(params, state)
         losses.append(float(loss))
     seconds = time.perf_counter() - clock

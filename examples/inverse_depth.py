@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from _progress import progress
 
 import jaxrt as rt
 
@@ -98,6 +99,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--learning-rate", type=float, default=0.005)
     parser.add_argument("--smoothness", type=float, default=1.0, help="weight of the Laplacian prior")
     parser.add_argument("--out", default="out/inverse_depth")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -143,7 +145,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     *before, depth_before, hit_before = errors(offsets)
     losses, clock = [], time.perf_counter()
-    for _ in range(args.iterations):
+    for _ in progress(range(args.iterations), quiet=args.quiet, desc="optimising"):
         offsets, state, loss, _ = step(offsets, state)
         losses.append(float(loss))
     seconds = time.perf_counter() - clock

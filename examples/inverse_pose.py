@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from _progress import progress
 
 import jaxrt as rt
 
@@ -135,6 +136,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--learning-rate", type=float, default=0.01)
     parser.add_argument("--procedural", action="store_true", help="use the procedural blob, not the bunny")
     parser.add_argument("--out", default="out/inverse_pose")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -183,7 +185,7 @@ def main(argv: list[str] | None = None) -> dict:
     before = errors(pose)
     depth_before, hit_before = render(pose)
     losses, clock = [], time.perf_counter()
-    for _ in range(args.iterations):
+    for _ in progress(range(args.iterations), quiet=args.quiet, desc="optimising"):
         pose, state, loss = step(pose, state)
         losses.append(float(loss))
     seconds = time.perf_counter() - clock

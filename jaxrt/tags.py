@@ -22,6 +22,7 @@ __all__ = [
     "primitive_data",
     "user_instance_id",
     "stats",
+    "normal",
 ]
 
 
@@ -52,6 +53,21 @@ primitive_data = Tag("primitive_data")
 user_instance_id = Tag("user_instance_id")
 """Metal's tag for the user ids of the hit instance chain; ``instancing`` already adds ``user_instance_id``,
 so this one only requires :data:`instancing`."""
+normal = Tag("normal")
+"""Adds ``normal`` ``(..., 3)``: the unit world-space geometric normal of the hit surface.
+
+Triangles give ``normalize(cross(v1 - v0, v2 - v0))`` (the geometric normal ``Ng`` of Metal and Embree,
+not flipped towards the ray): with the winding convention of ``docs/design.md`` it points along the ray
+(``dot(normal, direction) > 0``) when the triangle is seen clockwise, against it when counterclockwise; use
+``rt.shading.face_forward`` for a normal facing the viewer. Round curves give the tube's outward surface
+normal (end spheres: outward; end disks: the end tangent, out of the tube); flat curves, which face the ray,
+the ribbon normal towards the ray origin (ray-facing end disks: ``-direction``). Bounding-box hits give
+zeros: the surface is the intersection function's, unknown to the library. Misses give zeros (with
+``type == IntersectionType.NONE``). Through instances, object-space normals are transformed by the inverse
+transpose of the chain's object-to-world transform, then normalised (a mirroring instance keeps outward
+normals outward). Differentiable like the other fields, holding the hit fixed; zero-area triangles give
+zeros, never NaN.
+"""
 stats = Tag("stats")
 """Adds traversal counters: ``nodes_visited``, ``primitives_tested`` and ``stack_overflow``."""
 
@@ -75,5 +91,6 @@ KNOWN = frozenset(
         "primitive_data",
         "user_instance_id",
         "stats",
+        "normal",
     ]
 )

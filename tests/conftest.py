@@ -1,4 +1,5 @@
-"""Shared test configuration: a deterministic hypothesis profile and the test-helper import path."""
+"""Shared test configuration: a deterministic hypothesis profile, the test-helper import path, and the shared
+data folder."""
 
 from __future__ import annotations
 
@@ -11,6 +12,16 @@ import hypothesis
 # Under ``--import-mode=importlib`` the tests folder is not on ``sys.path``; the float64 reference and the
 # tolerance table live in ``tests/reference.py`` and are imported by name.
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+
+def data_dir() -> Path:
+    """The shared data folder: ``$JAXRT_DATA_DIR`` when set, else ``shared/data`` beside the repository (as
+    ``jaxrt.bench.scenes.default_data_dir``). It may be absent: tests that need it skip."""
+    env = os.environ.get("JAXRT_DATA_DIR")
+    if env:
+        return Path(env)
+    return Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
 
 hypothesis.settings.register_profile(
     "ci",

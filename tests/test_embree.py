@@ -1,4 +1,5 @@
-"""jaxrt against Embree (through embreex) on the Stanford bunny and dragon from ``../shared/data``.
+"""jaxrt against Embree (through embreex) on the Stanford bunny and dragon from the shared data folder
+(``$JAXRT_DATA_DIR``, else ``../shared/data``).
 
 Both trace the same float32 rays against the same float32 triangles. Where they disagree (hit or miss,
 primitive, or distance), and on a sample of rays where they agree, jaxrt must match the float64 brute-force
@@ -9,15 +10,15 @@ from __future__ import annotations
 
 import gzip
 import io
-from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import data_dir
 from reference import brute_force_chunked, check_nearest
 
 import jaxrt as rt
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+DATA = data_dir()  # $JAXRT_DATA_DIR, else shared/data beside the repository
 MESHES = {
     "bunny": ("stanford-bunny/bun_zipper.binary.ply", "stanford-bunny/stanford-bunny.obj.gz"),
     "dragon": ("stanford-dragon-decimated/dragon_vrip_res3.obj.gz",),

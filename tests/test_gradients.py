@@ -91,7 +91,7 @@ def outputs(params: dict, settings: dict):
     values = {
         "distance": jnp.where(hit, hits.distance, 0.0),
         "barycentrics": hits.triangle_barycentric_coord,
-        "point": rt.shading.hit_points(rays, hits),
+        "point": rt.shading.hit_points(rays, hits, miss_value=0.0),
     }
     primitive = jnp.where(hit, hits.geometry_id * 1000 + hits.primitive_id, -1)
     return values, primitive

@@ -8,12 +8,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import data_dir
 
 import jaxrt as rt
 
 pytest.importorskip("pygltflib")
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = data_dir()  # $JAXRT_DATA_DIR, else shared/data beside the repository
 SIMPLE = DATA / "gltf-simple-instancing" / "SimpleInstancing.gltf"
 ENGINE = DATA / "gltf-2cylinderengine-hierarchy" / "2CylinderEngine.glb"
 

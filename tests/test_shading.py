@@ -256,3 +256,80 @@ def test_one_bounce_diffuse_rejects_several_geometries():
         shading.one_bounce_diffuse(
             jax.random.key(0), structure, vertices, QUAD_FACES, points, normals, light_direction=LIGHT
         )
+
+
+def _two_geometries():
+    """Two meshes whose triangle 0 differ: a hit on geometry 1 must not read geometry 0's triangle."""
+    a_vertices, a_faces = icosahedron()
+    rng = np.random.default_rng(5)
+    b_vertices = (a_vertices @ np.linalg.qr(rng.normal(size=(3, 3)))[0] + [4.0, 0, 0]).astype(np.float32)
+    b_faces = a_faces[::-1].copy()
+    return (a_vertices, a_faces), (b_vertices, b_faces)
+
+
+def test_helpers_read_each_hits_own_geometry():
+    (av, af), (bv, bf) = _two_geometries()
+    structure = rt.build_primitive_structure([rt.TriangleGeometry(av, af), rt.TriangleGeometry(bv, bf)])
+    rng = np.random.default_rng(6)
+    target = np.concatenate([np.zeros((32, 3)), np.tile([4.0, 0, 0], (32, 1))]) + rng.normal(scale=0.3, size=(64, 3))
+    direction = rng.normal(size=(64, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    rays = rt.Ray(jnp.asarray(target - 5 * direction, jnp.float32), jnp.asarray(direction, jnp.float32))
+    hit = rt.Intersector(rt.tags.triangle_data).intersect(rays, structure)
+    g, p = np.asarray(hit.geometry_id), np.asarray(hit.primitive_id)
+    assert (g == 0).sum() > 10 and (g == 1).sum() > 10
+    # float64 reference: each hit's own triangle.
+    tri = np.where((g == 1)[:, None, None], bv.astype(np.float64)[bf[p]], av.astype(np.float64)[af[p]])
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    expected = np.where((g >= 0)[:, None], n / np.linalg.norm(n, axis=1, keepdims=True), 0.0)
+    got = shading.triangle_normals([av, bv], [af, bf], hit.primitive_id, hit.geometry_id)
+    np.testing.assert_allclose(got, expected, atol=1e-6)
+    # Interpolating the positions gives the hit points (a per-geometry attribute read by geometry_id).
+    points = shading.interpolate([av, bv], [af, bf], hit.primitive_id, hit.triangle_barycentric_coord, hit.geometry_id)
+    hits = g >= 0
+    np.testing.assert_allclose(np.asarray(points)[hits], np.asarray(shading.hit_points(rays, hit))[hits], atol=1e-4)
+    smooth = shading.interpolate_normals(
+        [shading.vertex_normals(av, af), shading.vertex_normals(bv, bf)],
+        [af, bf],
+        hit.primitive_id,
+        hit.triangle_barycentric_coord,
+        hit.geometry_id,
+    )
+    assert np.allclose(np.linalg.norm(np.asarray(smooth)[hits], axis=1), 1.0, atol=1e-5)
+    # Under jit (no value check) the result is the same.
+    jitted = jax.jit(shading.triangle_normals)([av, bv], [af, bf], hit.primitive_id, hit.geometry_id)
+    np.testing.assert_allclose(jitted, expected, atol=1e-6)
+
+
+def test_helpers_refuse_ambiguous_geometry_ids():
+    (av, af), (bv, bf) = _two_geometries()
+    with pytest.raises(ValueError, match="triangle_normals: 2 geometries were given but no geometry_id"):
+        shading.triangle_normals([av, bv], [af, bf], jnp.array([0]))
+    with pytest.raises(ValueError, match="triangle_normals: geometry_id holds 1 but only 1 geometry was given"):
+        shading.triangle_normals(av, af, jnp.array([0, 0]), jnp.array([0, 1]))
+    with pytest.raises(ValueError, match="interpolate: geometry_id holds 2 but only 2 geometries"):
+        shading.interpolate([av, bv], [af, bf], jnp.array([0]), jnp.zeros((1, 2)), jnp.array([2]))
+    with pytest.raises(TypeError, match="interpolate_normals: give one geometry's arrays or one sequence"):
+        shading.interpolate_normals([av, bv], af, jnp.array([0]), jnp.zeros((1, 2)))
+    # Inside jit nothing raises: an id naming no given geometry reads as a miss.
+    jitted = jax.jit(lambda g: shading.triangle_normals(av, af, jnp.array([0, 0]), g))(jnp.array([0, 1]))
+    assert np.asarray(jitted)[1].tolist() == [0.0, 0.0, 0.0] and np.linalg.norm(jitted[0]) > 0.99
+    # A single geometry keeps working without geometry_id.
+    single = shading.triangle_normals(av, af, jnp.array([3, -1]))
+    assert np.isclose(np.linalg.norm(single[0]), 1.0) and np.asarray(single[1]).tolist() == [0.0, 0.0, 0.0]
+
+
+def test_hit_points_mark_misses_with_inf_and_no_nan_gradient():
+    structure = rt.build_primitive_structure(rt.TriangleGeometry([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]]))
+    origin = jnp.array([[0.2, 0.2, 1.0], [5, 5, 1], [0.1, 0.1, -1.0]])  # the third starts below, going away
+
+    def points(o, **kw):
+        rays = rt.Ray(o, jnp.array([[0.0, 0, -1], [0, 0, -1], [0, 0, -1]]))
+        return shading.hit_points(rays, rt.Intersector().intersect(rays, structure), **kw)
+
+    got = np.asarray(points(origin))
+    np.testing.assert_allclose(got[0], [0.2, 0.2, 0.0], atol=1e-7)
+    assert np.isinf(got[1:]).all() and not np.isnan(got).any()  # a miss at the origin is not the point 0
+    np.testing.assert_array_equal(np.asarray(points(origin, miss_value=0.0))[1:], 0.0)
+    grad = jax.grad(lambda o: jnp.sum(points(o, miss_value=0.0)))(origin)
+    np.testing.assert_allclose(grad, [[1.0, 1, 0], [0, 0, 0], [0, 0, 0]], atol=1e-6)

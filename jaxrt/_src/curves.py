@@ -484,7 +484,8 @@ class CurveLeaves:
 
 
 def curve_hit_fields(leaf_curve, leaf_curve_flags, leaf, hit, origin, direction, t_min, t_max, distance, config):
-    """For every ray, whether its hit is a curve, and that hit's differentiable ``(distance, u)``.
+    """For every ray, whether its hit is a curve, that hit's differentiable ``(distance, u)``, and the part of
+    the segment it lies on (a ``PART_*`` code of :mod:`jaxrt._src.primitives.curve`).
 
     ``leaf_curve`` and ``leaf_curve_flags`` are a scene's global curve leaves indexed by ``leaf``; ``origin``
     and ``direction`` are the ray in the hit's object space. The traversal only picks the leaf: the chosen segment is tested again
@@ -512,4 +513,4 @@ def curve_hit_fields(leaf_curve, leaf_curve_flags, leaf, hit, origin, direction,
     part = jnp.where(is_curve, again.part, primitive.PART_TUBE)
     u = jnp.where(is_curve, again.u, 0.5)
     t, u = jax.vmap(primitive.smooth_hit)(ray_origin, ray_direction, segment, part, u, exact_t)
-    return is_curve, t, u
+    return is_curve, t, u, part

@@ -4,7 +4,7 @@ The traversal only picks the hit (detached). The chosen primitive is then inters
 ray moved into the hit's object space level by level as the traversal did: exact values come from the test
 the traversal ran, gradients from a smooth formula (triangles: a world-space re-intersection with the vertices
 moved by the chain's composed object-to-world transform), the curve's smooth hit, or the user's intersection
-function called again. So distances, barycentrics, curve parameters, box distances and world-space
+function called again. So distances, barycentrics, curve parameters, box distances, normals and world-space
 transforms differentiate with respect to vertices, control points, radii, instance transforms and rays,
 holding the hit fixed. A scene without instances compiles none of the transform code.
 """
@@ -18,6 +18,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from jaxrt._src import leaves as leaf_tests
+from jaxrt._src import normals as hit_normals
 from jaxrt._src.instances import apply_transform, compose_transforms, invert_transform
 from jaxrt._src.primitive_data import data_at
 from jaxrt._src.primitives import triangle
@@ -150,7 +151,7 @@ def hit_fields(
     exact_distance = jnp.full(found.shape, jnp.inf, dtype)
     if "curve" in kinds:  # curve hits: re-tested (in object space) differentiably
         config = leaf_tests.curve_configuration(intersector, view)
-        is_curve, curve_t, curve_u = curve_support.curve_hit_fields(
+        is_curve, curve_t, curve_u, curve_part = curve_support.curve_hit_fields(
             leaves.curve, leaves.curve_flags, leaf, hit, object_origin, object_direction, t_min, t_max, distance, config
         )
         hit = hit & ~is_curve
@@ -201,4 +202,33 @@ def hit_fields(
         fields["primitive_data"] = data_at(leaves.primitive_data, leaf, found)
     if intersector.has("instancing"):
         fields.update(_instance_fields(intersector, view, transforms, found, dtype))
+    if intersector.has("normal"):
+        # Triangles: the object-space face normal of the (differentiable) vertices; dummy ones elsewhere.
+        object_vertices = jnp.where(hit[:, None, None], vertices, dummy)
+        normal = jnp.where(hit[:, None], hit_normals.triangle_normal(object_vertices), 0.0)
+        if "curve" in kinds:
+            curve_normal = _curve_normals(
+                view, leaf, is_curve, curve_part, curve_u, curve_t, object_origin, object_direction
+            )
+            normal = jnp.where(is_curve[:, None], curve_normal, normal)
+        if transforms is not None:
+            normal = hit_normals.to_world(normal, transforms.world_to_object)
+        fields["normal"] = hit_normals.unit(normal)
     return fields
+
+
+def _curve_normals(view, leaf, is_curve, part, u, t, origin, direction):
+    """Object-space normals of curve hits (zeros elsewhere): evaluated on the hit segment at the hit's
+    differentiable ``(distance, u)``, with dummy values in the other lanes (no NaN in their gradients)."""
+    from jaxrt._src.primitives import curve as primitive
+
+    segment = view.leaves.curve[leaf]
+    dummy = jnp.zeros((6, 4), segment.dtype).at[:4, 0].set(jnp.array([0.0, 1 / 3, 2 / 3, 1.0])).at[:4, 3].set(0.5)
+    segment = jnp.where(is_curve[:, None, None], segment, dummy)
+    origin = jnp.where(is_curve[:, None], origin, jnp.array([0.5, 0.0, -1.0], origin.dtype))
+    direction = jnp.where(is_curve[:, None], direction, jnp.array([0.0, 0.0, 1.0], direction.dtype))
+    part = jnp.where(is_curve, part, primitive.PART_TUBE)
+    u = jnp.where(is_curve, u, 0.5)
+    t = jnp.where(is_curve, t, 0.5)
+    normal = jax.vmap(hit_normals.curve_normal)(origin, direction, segment, part, u, t)
+    return jnp.where(is_curve[:, None], normal, 0.0)

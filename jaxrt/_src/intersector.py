@@ -32,6 +32,7 @@ _SUPPORTED_TAGS = frozenset(
         "world_space_data",
         "user_instance_id",
         "primitive_data",
+        "normal",
     ]
 )
 #: Geometry kinds ``geometry_types`` may name (strings or ``rt.IntersectionType`` members).

@@ -39,6 +39,7 @@ FIELD_TAGS = {
     "nodes_visited": "stats",
     "primitives_tested": "stats",
     "stack_overflow": "stats",
+    "normal": "normal",
 }
 
 
@@ -63,7 +64,8 @@ class IntersectionResult(Mapping):
             return fields[name]
         if name in FIELD_TAGS:
             raise AttributeError(
-                f"IntersectionResult has no field {name!r}: add tags.{FIELD_TAGS[name]} to the Intersector"
+                f"IntersectionResult has no field {name!r}: add rt.tags.{FIELD_TAGS[name]} to the Intersector, "
+                f"e.g. rt.Intersector(rt.tags.{FIELD_TAGS[name]})"
             )
         raise AttributeError(f"IntersectionResult has no field {name!r}")
 
@@ -71,7 +73,10 @@ class IntersectionResult(Mapping):
         raise AttributeError("IntersectionResult is immutable")
 
     def __getitem__(self, name: str) -> Any:
-        return self._fields[name]
+        fields = self._fields
+        if name not in fields and name in FIELD_TAGS:
+            raise KeyError(f"{name!r}: add rt.tags.{FIELD_TAGS[name]} to the Intersector")
+        return fields[name]
 
     def __iter__(self) -> Iterator[str]:
         return iter(self._fields)

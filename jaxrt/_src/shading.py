@@ -9,7 +9,9 @@ anything computed from hits hold the hit primitive fixed: see ``docs/differentia
 
 Conventions: directions "towards the light" and "towards the viewer" point away from the surface; normals
 are unit vectors; barycentrics are ``(u, v)`` with ``point = (1 - u - v) v0 + u v1 + v v2`` (the
-intersector's ``triangle_barycentric_coord``); misses (``primitive_id == -1``) give zeros, never NaN.
+intersector's ``triangle_barycentric_coord``); misses (``primitive_id == -1``) give zeros, never NaN, except
+:func:`hit_points`, whose misses are ``inf`` (a value no hit point has). Helpers that read a hit's triangle
+take one geometry's arrays, or one array per geometry with the hits' ``geometry_id``.
 """
 
 from __future__ import annotations
@@ -109,35 +111,128 @@ def pinhole_rays(
     return Ray(jnp.broadcast_to(eye, direction.shape), direction)
 
 
-def hit_points(rays: Ray, result: IntersectionResult) -> jax.Array:
-    """``origin + distance * direction`` for hits, 0 for misses (no NaN, differentiable).
+def hit_points(rays: Ray, result: IntersectionResult, *, miss_value: Any = jnp.inf) -> jax.Array:
+    """``origin + distance * direction`` for hits; ``miss_value`` (``inf`` by default) for misses.
+
+    Misses are marked by a value no hit can have (``jnp.isfinite(points).all(-1)`` is ``result.type != 0``),
+    so a miss cannot pass for a real point; no NaN is produced, and the gradient is 0 for misses. Pass
+    ``miss_value=0.0`` where the points feed arithmetic that masks misses later (``inf * 0`` is NaN).
 
     Args:
       rays: the rays that were traced.
       result: their intersection result.
+      miss_value: the coordinates of misses (a scalar or ``(3,)``).
 
     Returns:
-      ``(..., 3)`` hit points; their gradient holds the hit primitive fixed, and is 0 for misses.
+      ``(..., 3)`` hit points; their gradient holds the hit primitive fixed.
+
+    Examples:
+      >>> import jaxrt as rt
+      >>> s = rt.build_primitive_structure(rt.TriangleGeometry([[0., 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]]))
+      >>> rays = rt.Ray(jnp.array([[.2, .2, 1], [5, 5, 1]]), jnp.array([[0., 0, -1], [0, 0, -1]]))
+      >>> rt.shading.hit_points(rays, rt.Intersector().intersect(rays, s)).tolist()
+      [[0.20000000298023224, 0.20000000298023224, 0.0], [inf, inf, inf]]
     """
     hit = result.type != 0
     distance = jnp.where(hit, result.distance, 0.0)
-    return jnp.where(hit[..., None], rays.origin + distance[..., None] * rays.direction, 0.0)
+    points = rays.origin + distance[..., None] * rays.direction
+    return jnp.where(hit[..., None], points, jnp.asarray(miss_value, points.dtype))
 
 
-def triangle_normals(vertices: jax.Array, indices: jax.Array, primitive_id: jax.Array) -> jax.Array:
-    """Unit geometric normals ``normalize(cross(v1 - v0, v2 - v0))`` of triangles ``primitive_id`` (-1 gives 0).
+def _is_sequence(value: Any) -> bool:
+    return isinstance(value, (list, tuple))
+
+
+def _concrete(value: Any) -> bool:
+    return not isinstance(value, jax.core.Tracer)
+
+
+def _triangle_corners(
+    name: str, per_vertex: Any, indices: Any, primitive_id: Any, geometry_id: Any
+) -> tuple[jax.Array, jax.Array]:
+    """``(corners, hit)``: ``per_vertex`` values ``(..., 3, ...)`` at the corners of each hit's triangle, and
+    whether the hit names a triangle of the given geometries.
+
+    ``per_vertex`` and ``indices`` are one geometry's arrays, or sequences of them indexed by ``geometry_id``
+    (the geometries in the order the structure was built from). Lanes whose ``geometry_id`` or ``primitive_id``
+    names no given triangle count as misses.
+    """
+    primitive_id = jnp.asarray(primitive_id)
+    if _is_sequence(per_vertex) != _is_sequence(indices):
+        raise TypeError(
+            f"{name}: give one geometry's arrays or one sequence per geometry for both the per-vertex values and "
+            f"indices, got {type(per_vertex).__name__} and {type(indices).__name__}"
+        )
+    if not _is_sequence(indices):
+        per_vertex, indices = [per_vertex], [indices]
+    if len(per_vertex) != len(indices) or not indices:
+        raise ValueError(
+            f"{name}: got {len(per_vertex)} per-vertex arrays and {len(indices)} index arrays; give one of each "
+            "per geometry"
+        )
+    geometries = len(indices)
+    if geometry_id is None:
+        if geometries > 1:
+            raise ValueError(
+                f"{name}: {geometries} geometries were given but no geometry_id: pass the result's geometry_id so "
+                "each hit reads its own geometry's triangle"
+            )
+        geometry_id = jnp.zeros_like(primitive_id)
+    geometry_id = jnp.broadcast_to(jnp.asarray(geometry_id, jnp.int32), primitive_id.shape)
+    if _concrete(geometry_id) and geometry_id.size and int(jnp.max(geometry_id)) >= geometries:
+        raise ValueError(
+            f"{name}: geometry_id holds {int(jnp.max(geometry_id))} but only {geometries} geometr"
+            f"{'y was' if geometries == 1 else 'ies were'} given; pass sequences of every geometry's arrays "
+            "(in the order the structure was built from)"
+        )
+    per_vertex = [jnp.asarray(a) for a in per_vertex]
+    indices = [jnp.asarray(i, jnp.int32) for i in indices]
+    counts = np.array([i.shape[0] for i in indices])
+    first_triangle = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int32)
+    first_vertex = np.concatenate([[0], np.cumsum([a.shape[0] for a in per_vertex])[:-1]]).astype(np.int32)
+    all_values = per_vertex[0] if geometries == 1 else jnp.concatenate(per_vertex)
+    all_indices = jnp.concatenate([i + int(offset) for i, offset in zip(indices, first_vertex, strict=True)])
+    g = jnp.clip(geometry_id, 0, geometries - 1)
+    hit = (primitive_id >= 0) & (geometry_id >= 0) & (geometry_id < geometries)
+    hit &= primitive_id < jnp.asarray(counts, jnp.int32)[g]
+    triangle = jnp.where(hit, jnp.asarray(first_triangle)[g] + primitive_id, 0)
+    return all_values[all_indices[triangle]], hit
+
+
+def triangle_normals(
+    vertices: Any, indices: Any, primitive_id: jax.Array, geometry_id: jax.Array | None = None
+) -> jax.Array:
+    """Unit geometric normals ``normalize(cross(v1 - v0, v2 - v0))`` of the hit triangles (misses give 0).
+
+    (``rt.tags.normal`` gives the same normal in the result, through instances too.)
 
     Args:
-      vertices: ``(V, 3)`` vertex positions.
-      indices: ``(T, 3)`` vertex indices of the triangles.
-      primitive_id: ``(...)`` triangle index per hit, -1 for a miss.
+      vertices: ``(V, 3)`` vertex positions of one geometry, or a sequence of them, one per geometry in the
+        order the structure was built from.
+      indices: ``(T, 3)`` vertex indices of that geometry's triangles, or a sequence of them (as ``vertices``).
+      primitive_id: ``(...)`` triangle index per hit within its geometry, -1 for a miss.
+      geometry_id: ``(...)`` the hits' ``geometry_id``; needed with several geometries (a primitive id alone
+        does not say which geometry's triangle it is).
 
     Returns:
-      ``(..., 3)`` unit normals (0 for misses and zero-area triangles).
+      ``(..., 3)`` unit normals (0 for misses, zero-area triangles, and ids naming no given triangle).
+
+    Raises:
+      ValueError: several geometries without ``geometry_id``, or (outside ``jit``) a ``geometry_id`` past the
+        geometries given.
+
+    Examples:
+      >>> import jaxrt as rt
+      >>> a = (jnp.array([[0., 0, 0], [1, 0, 0], [0, 1, 0]]), jnp.array([[0, 1, 2]]))
+      >>> b = (jnp.array([[0., 0, 0], [0, 1, 0], [1, 0, 0]]), jnp.array([[0, 1, 2]]))
+      >>> rt.shading.triangle_normals([a[0], b[0]], [a[1], b[1]], jnp.array([0, 0, -1]), jnp.array([0, 1, -1]))
+      Array([[ 0.,  0.,  1.],
+             [ 0.,  0., -1.],
+             [ 0.,  0.,  0.]], dtype=float32)
     """
-    tri = vertices[indices[jnp.maximum(primitive_id, 0)]]
+    tri, hit = _triangle_corners("triangle_normals", vertices, indices, primitive_id, geometry_id)
     n = _normalize(jnp.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :]))
-    return jnp.where((primitive_id >= 0)[..., None], n, 0.0)
+    return jnp.where(hit[..., None], n, 0.0)
 
 
 def vertex_normals(vertices: jax.Array, indices: jax.Array) -> jax.Array:
@@ -167,19 +262,30 @@ def vertex_normals(vertices: jax.Array, indices: jax.Array) -> jax.Array:
 
 
 def interpolate(
-    attribute: jax.Array, indices: jax.Array, primitive_id: jax.Array, barycentrics: jax.Array
+    attribute: Any,
+    indices: Any,
+    primitive_id: jax.Array,
+    barycentrics: jax.Array,
+    geometry_id: jax.Array | None = None,
 ) -> jax.Array:
     """A per-vertex attribute at hits: ``(1 - u - v) a[i0] + u a[i1] + v a[i2]`` of the hit triangle.
 
     Args:
-      attribute: ``(V,)`` or ``(V, C)`` values per vertex (normals, UVs, colours, ...).
-      indices: ``(T, 3)`` vertex indices of the triangles (the geometry's ``indices``).
-      primitive_id: ``(...)`` triangle index per hit, -1 for a miss.
+      attribute: ``(V,)`` or ``(V, C)`` values per vertex (normals, UVs, colours, ...) of one geometry, or a
+        sequence of them, one per geometry in the order the structure was built from (same trailing shape).
+      indices: ``(T, 3)`` vertex indices of the triangles (the geometry's ``indices``), or a sequence of them.
+      primitive_id: ``(...)`` triangle index per hit within its geometry, -1 for a miss.
       barycentrics: ``(..., 2)`` the hit's ``triangle_barycentric_coord``.
+      geometry_id: ``(...)`` the hits' ``geometry_id``; needed with several geometries.
 
     Returns:
-      ``(...)`` or ``(..., C)`` interpolated values, 0 for misses. Differentiable with respect to
-      ``attribute`` and ``barycentrics`` (and so, through the intersector, to vertices and rays).
+      ``(...)`` or ``(..., C)`` interpolated values, 0 for misses (and ids naming no given triangle).
+      Differentiable with respect to ``attribute`` and ``barycentrics`` (and so, through the intersector, to
+      vertices and rays).
+
+    Raises:
+      ValueError: several geometries without ``geometry_id``, or (outside ``jit``) a ``geometry_id`` past the
+        geometries given.
 
     Examples:
       >>> import jaxrt as rt
@@ -188,29 +294,36 @@ def interpolate(
       Array([[0.25, 0.5 ],
              [0.  , 0.  ]], dtype=float32)
     """
-    attribute = jnp.asarray(attribute)
-    primitive_id = jnp.asarray(primitive_id)
+    return _interpolate("interpolate", attribute, indices, primitive_id, barycentrics, geometry_id)
+
+
+def _interpolate(name, attribute, indices, primitive_id, barycentrics, geometry_id):
+    corners, hit = _triangle_corners(name, attribute, indices, primitive_id, geometry_id)
     barycentrics = jnp.asarray(barycentrics)
-    hit = primitive_id >= 0
-    corners = attribute[jnp.asarray(indices)[jnp.maximum(primitive_id, 0)]]  # (..., 3) or (..., 3, C)
     u, v = barycentrics[..., 0], barycentrics[..., 1]
     weights = jnp.stack([1.0 - u - v, u, v], axis=-1).astype(corners.dtype)
-    if attribute.ndim == 1:
+    if corners.ndim == hit.ndim + 1:  # one value per vertex
         return jnp.where(hit, jnp.sum(weights * corners, axis=-1), 0.0)
     value = jnp.sum(weights[..., None] * corners, axis=-2)
-    return jnp.where(hit.reshape(*hit.shape, *([1] * (attribute.ndim - 1))), value, 0.0)
+    return jnp.where(hit.reshape(*hit.shape, *([1] * (corners.ndim - hit.ndim - 1))), value, 0.0)
 
 
 def interpolate_normals(
-    normals: jax.Array, indices: jax.Array, primitive_id: jax.Array, barycentrics: jax.Array
+    normals: Any,
+    indices: Any,
+    primitive_id: jax.Array,
+    barycentrics: jax.Array,
+    geometry_id: jax.Array | None = None,
 ) -> jax.Array:
     """Smooth shading normals at hits: per-vertex normals interpolated with :func:`interpolate`, renormalised.
 
     Args:
-      normals: ``(V, 3)`` per-vertex normals, e.g. from :func:`vertex_normals`.
-      indices: ``(T, 3)`` vertex indices of the triangles.
-      primitive_id: ``(...)`` triangle index per hit, -1 for a miss.
+      normals: ``(V, 3)`` per-vertex normals, e.g. from :func:`vertex_normals`, or a sequence of them, one
+        per geometry.
+      indices: ``(T, 3)`` vertex indices of the triangles, or a sequence of them.
+      primitive_id: ``(...)`` triangle index per hit within its geometry, -1 for a miss.
       barycentrics: ``(..., 2)`` the hit's ``triangle_barycentric_coord``.
+      geometry_id: ``(...)`` the hits' ``geometry_id``; needed with several geometries.
 
     Returns:
       ``(..., 3)`` unit normals; 0 (with zero gradient, not NaN) for misses.
@@ -222,7 +335,7 @@ def interpolate_normals(
       Array([[0.        , 0.70710677, 0.70710677],
              [0.        , 0.        , 0.        ]], dtype=float32)
     """
-    return _normalize(interpolate(normals, indices, primitive_id, barycentrics))
+    return _normalize(_interpolate("interpolate_normals", normals, indices, primitive_id, barycentrics, geometry_id))
 
 
 def texture_lookup(texture: jax.Array, uv: jax.Array) -> jax.Array:
@@ -525,7 +638,7 @@ def _bounce_rays(key, points, normals, enabled, samples):
 def _bounce_hits(found, bounce, vertices, indices):
     """Bounce hit points and their geometric normals facing the bounce rays."""
     n_y = face_forward(triangle_normals(vertices, indices, found.primitive_id), bounce.direction)
-    return hit_points(bounce, found), n_y
+    return hit_points(bounce, found, miss_value=0.0), n_y
 
 
 @jax.jit
