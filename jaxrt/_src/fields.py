@@ -112,11 +112,14 @@ def _box_distance(intersector, view, leaf, is_box, origin, direction, t_min, t_m
     ray_direction = jnp.where(is_box[:, None], direction, jnp.array([0.0, 0.0, 1.0], direction.dtype))
     t_max = jnp.where(is_box, detached(t_max), 1.0)
 
-    def one(o, d, lo, hi, k):
-        ray = leaf_tests.function_ray(o, d, lo, hi)
-        return leaf_tests.call_function(intersector.intersection_functions, ray, leaf_tests.box_candidate(view, k))
+    boxes = view.leaves.box[leaf]  # gathered per ray: a moving box is blended at each ray's time
 
-    accept, smooth = jax.vmap(one)(ray_origin, ray_direction, jnp.where(is_box, t_min, 0.0), t_max, leaf)
+    def one(o, d, lo, hi, k, box):
+        ray = leaf_tests.function_ray(o, d, lo, hi)
+        candidate = leaf_tests.box_candidate(view, k, box=box)
+        return leaf_tests.call_function(intersector.intersection_functions, ray, candidate)
+
+    accept, smooth = jax.vmap(one)(ray_origin, ray_direction, jnp.where(is_box, t_min, 0.0), t_max, leaf, boxes)
     attached = detached(distance) + jnp.where(accept, smooth - detached(smooth), 0.0)
     return jnp.where(is_box, attached, jnp.inf)
 
@@ -131,10 +134,16 @@ def hit_fields(
     leaf: jax.Array,
     distance: jax.Array,
     chain: jax.Array,
+    *,
+    time: jax.Array | None = None,
 ) -> dict[str, Any]:
     """The hit fields of rays ``(n,)`` whose traversal found ``leaf`` (``-1``: a miss) at ``distance`` through
-    the instance ``chain`` ``(n, levels)``."""
+    the instance ``chain`` ``(n, levels)``; ``time`` ``(n,)`` with keyframe motion: moving primitives are
+    re-intersected as blended at each ray's time (differentiable in the keyframes and the time)."""
     from jaxrt._src import curves as curve_support
+
+    if time is not None and view.leaves.motion is not None:
+        view = view.at(view.keyframe_position(time))
 
     detached = lax.stop_gradient
     dtype = origin.dtype

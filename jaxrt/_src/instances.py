@@ -48,6 +48,7 @@ from jaxrt._src.bvh.boxes import child_boxes, range_boxes
 from jaxrt._src.bvh.morton import morton_codes
 from jaxrt._src.bvh.radix_tree import build_radix_tree, tree_depth_bound
 from jaxrt._src.geometry import float_dtype
+from jaxrt._src.motion import MotionSpec
 from jaxrt._src.numerics import full_precision, gamma
 from jaxrt._src.structures import PrimitiveAccelerationStructure, capacity_bucket, refit_primitives
 
@@ -307,6 +308,8 @@ class InstanceTable:
     user_id: jax.Array
     options: jax.Array
     count: jax.Array
+    motion_transform: jax.Array | None = None  # (N, K, 3, 4) object-to-world keyframes (instance motion only)
+    motion: MotionSpec | None = dataclasses.field(default=None, metadata=dict(static=True))
 
     @property
     def capacity(self) -> int:
@@ -398,6 +401,11 @@ class InstanceAccelerationStructure:
     def levels(self) -> int:
         """Instance levels from this structure down to the primitives (1 for instances of primitive structures)."""
         return _levels_of(len(self.primitive_structures), self.children)[-1]
+
+    @property
+    def has_instance_motion(self) -> bool:
+        """Whether some instance table below (or at) this structure has keyframed transforms."""
+        return any(t.motion is not None for t in self.instance_tables)
 
     @property
     def instance_count(self) -> jax.Array:

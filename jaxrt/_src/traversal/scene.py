@@ -45,6 +45,7 @@ class TraversalLayout(NamedTuple):
     primitive_leaves: int  # P: leaves below it are primitives, the rest instances
     levels: int  # instance levels (0: a primitive structure)
     stack_size: int  # entries of the traversal stack that can never overflow (see :func:`~jaxrt._src.bvh.radix_tree.tree_depth_bound`)
+    motion: bool = False  # keyframe motion (primitives or instances): the traversal reads each ray's time
 
 
 class TraversalResult(NamedTuple):

@@ -45,6 +45,7 @@ __all__ = [
     "State",
     "SCRATCH",
     "needs_transition",
+    "prepare",
     "result",
     "select_level",
     "start",
@@ -114,6 +115,14 @@ class RayConstants(NamedTuple):
     context: Any  # the leaf tester's constants for the world-space ray
     t_min: jax.Array
     mask: jax.Array | None  # uint32, AND-ed with instance masks (with instances only)
+    time: jax.Array | None = None  # the ray's time (with keyframe motion only)
+
+
+def prepare(tester: LeafTester, origin: jax.Array, direction: jax.Array, facing: Any, time: Any) -> Any:
+    """The tester's per-ray constants; testers of moving primitives (``reads_time``) also take the time."""
+    if getattr(tester, "reads_time", False):
+        return tester.prepare(origin, direction, facing, time)
+    return tester.prepare(origin, direction, facing)
 
 
 class State(NamedTuple):
@@ -155,16 +164,19 @@ def start(
     t_max: jax.Array,
     enabled: jax.Array,
     mask: jax.Array,
+    time: jax.Array | None = None,
     *,
     stack_size: int | None = None,
     max_hits: int | None = None,
 ) -> tuple[RayConstants, State]:
-    """Per-ray constants and the initial state of one ray (a disabled ray starts done)."""
+    """Per-ray constants and the initial state of one ray (a disabled ray starts done). ``time`` is read
+    only by scenes with keyframe motion (``layout.motion``)."""
     levels = layout.levels
     stack_size = layout.stack_size if stack_size is None else stack_size
     int_zero = jnp.zeros((), jnp.int32)
     inv_direction = safe_reciprocal(direction)
-    context = tester.prepare(origin, direction, jnp.ones((), jnp.int32) if levels else None)
+    time = jnp.asarray(time, origin.dtype) if layout.motion and time is not None else None
+    context = prepare(tester, origin, direction, jnp.ones((), jnp.int32) if levels else None, time)
     # Without instances the direction and the mask are never read again: not carried (the refill driver
     # selects every carried field of a lane that takes a new ray).
     ray = RayConstants(
@@ -174,6 +186,7 @@ def start(
         context,
         t_min,
         jnp.asarray(mask, jnp.uint32) if levels else None,
+        time,
     )
     hits = None
     if max_hits is not None:
@@ -348,7 +361,7 @@ def transition(scene: TraversalScene, tester: LeafTester, ray: RayConstants, s: 
     direction = jnp.where(entering, new_direction, base_direction)
     facing = jnp.where(entering, new_facing, base_facing)
     level = jnp.where(entering, s.level + 1, s.level)
-    context = tester.prepare(origin, direction, facing)
+    context = prepare(tester, origin, direction, facing, ray.time)
     keep = lambda new, old: jax.tree_util.tree_map(lambda a, b: jnp.where(need, a, b), new, old)  # noqa: E731
     return s._replace(
         node=jnp.where(entering, scene.instance_child_root[g], s.node),
