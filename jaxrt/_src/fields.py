@@ -18,7 +18,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from jaxrt._src import leaves as leaf_tests
-from jaxrt._src.instances import apply_transform, compose_transforms, invert_transform
+from jaxrt._src.instances import apply_transform, compose_transforms, instance_motion_at, invert_transform
 from jaxrt._src.primitive_data import data_at
 from jaxrt._src.primitives import triangle
 from jaxrt._src.result import IntersectionType
@@ -33,7 +33,15 @@ NO_USER_ID = 0xFFFFFFFF
 class _Chain:
     """The composed transforms of each hit's instance chain, and the ray in the hit's object space."""
 
-    def __init__(self, view: SceneView, chain: jax.Array, found: jax.Array, origin: jax.Array, direction: jax.Array):
+    def __init__(
+        self,
+        view: SceneView,
+        chain: jax.Array,
+        found: jax.Array,
+        origin: jax.Array,
+        direction: jax.Array,
+        time: jax.Array | None = None,
+    ):
         detached = lax.stop_gradient
         instances = view.instances
         dtype = origin.dtype
@@ -44,8 +52,13 @@ class _Chain:
         # The stored inverses (the values the traversal used), differentiated as the inverse of the transforms.
         inverse = invert_transform(instances.transform)
         world_to_object_rows = detached(instances.world_to_object) + (inverse - detached(inverse))
-        to_world = jnp.where(self.valid[..., None, None], instances.transform[self.g], identity)  # (n, L, 3, 4)
-        to_object = jnp.where(self.valid[..., None, None], world_to_object_rows[self.g], identity)
+        to_world, to_object = instances.transform[self.g], world_to_object_rows[self.g]
+        if instances.motion is not None and time is not None:  # moving instances: blended at the ray's time
+            moved, inverse, _, moving = instance_motion_at(instances.motion, self.g, time[:, None])
+            to_world = jnp.where(moving[..., None, None], moved, to_world)
+            to_object = jnp.where(moving[..., None, None], inverse, to_object)
+        to_world = jnp.where(self.valid[..., None, None], to_world, identity)  # (n, L, 3, 4)
+        to_object = jnp.where(self.valid[..., None, None], to_object, identity)
         object_to_world = jnp.broadcast_to(identity, (chain.shape[0], 3, 4))
         world_to_object = object_to_world
         for level in range(chain.shape[1]):
@@ -151,7 +164,7 @@ def hit_fields(
     found = leaf >= 0
     leaf = jnp.maximum(leaf, 0)
     leaves = view.leaves
-    transforms = _Chain(view, chain, found, origin, direction) if view.levels else None
+    transforms = _Chain(view, chain, found, origin, direction, time) if view.levels else None
     object_origin, object_direction = (transforms.origin, transforms.direction) if transforms else (origin, direction)
     kinds = view.kinds
     hit = found  # triangle hits, once the other kinds are taken out

@@ -76,6 +76,7 @@ class InstanceArrays:
     local_index: jax.Array  # (G,) index of the instance within its structure
     user_id: jax.Array  # (G,) uint32
     options: jax.Array  # (G,) uint32 InstanceOptions bits
+    motion: Any = None  # keyframed transforms (:class:`~jaxrt._src.instances.InstanceMotion`), or None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -252,6 +253,7 @@ def scene_view(structure: PrimitiveAccelerationStructure | InstanceAccelerationS
         local_index=scene.local_index,
         user_id=scene.user_id,
         options=scene.options,
+        motion=scene.motion,
     )
     infos = tuple(g for s in prims for g in s.geometry_info)
     return SceneView(traversal, layout, leaves, infos, instances)
@@ -290,6 +292,7 @@ def _instanced_traversal(structure: InstanceAccelerationStructure, scene) -> tup
         instance_child_root=scene.child_root,
         instance_facing=(scene.flip * scene.cull).astype(jnp.int32),
         instance_mask=scene.mask,
+        instance_motion=scene.motion,
     )
     layout = TraversalLayout(
         root=scene_root(structure),

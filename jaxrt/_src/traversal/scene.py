@@ -36,6 +36,7 @@ class TraversalScene(NamedTuple):
     instance_facing: jax.Array  # (G,) int32 in {-1, 0, 1}
     instance_mask: jax.Array  # (G,) uint32
     node_range: jax.Array | None = None  # (M, 2) int32 leaf range per node (zero levels only; wide layouts)
+    instance_motion: Any = None  # keyframed transforms (:class:`~jaxrt._src.instances.InstanceMotion`), or None
 
 
 class TraversalLayout(NamedTuple):

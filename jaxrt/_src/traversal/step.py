@@ -259,6 +259,8 @@ def visit(
         is_instance = is_leaf & ~is_primitive
         instance = jnp.clip(leaf_index - layout.primitive_leaves, 0, scene.instance_mask.shape[0] - 1)
         visible = (scene.instance_mask[instance] & ray.mask) != 0
+        if scene.instance_motion is not None:  # a moving instance on a "vanish" border is not there
+            visible &= _instance_visible(scene.instance_motion, instance, ray.time)
     else:
         is_primitive = is_leaf
     test = is_primitive & box_hit
@@ -326,6 +328,21 @@ def visit(
     )
 
 
+def _instance_visible(motion: Any, instance: jax.Array, time: jax.Array) -> jax.Array:
+    """Whether instances exist at ``time`` (only moving ones on a ``"vanish"`` border can be absent)."""
+    from jaxrt._src.motion import keyframe_position
+
+    position = keyframe_position(
+        time,
+        motion.count[instance],
+        motion.start[instance],
+        motion.end[instance],
+        motion.vanish_start[instance],
+        motion.vanish_end[instance],
+    )
+    return position.visible | ~motion.moving[instance]
+
+
 def select_level(level: jax.Array, top: jax.Array, per_level: jax.Array) -> jax.Array:
     """``top`` at level 0, else ``per_level[level - 1]`` (selects: the level count is small and static)."""
     out = top
@@ -351,6 +368,11 @@ def transition(scene: TraversalScene, tester: LeafTester, ray: RayConstants, s: 
     entering = need & (s.node < 0)
     g = jnp.clip(-1 - s.node, 0, instances - 1)
     m = scene.instance_world_to_object[g]
+    if scene.instance_motion is not None:  # the inverse of the transform blended at the ray's time
+        from jaxrt._src.instances import instance_motion_at
+
+        _, moved, _, moving = instance_motion_at(scene.instance_motion, g, ray.time)
+        m = jnp.where(moving, moved, m)
     # Elementwise products, not matmuls: a batched 3x3 dot is a slow library call on the CPU.
     new_origin = jnp.sum(m[:, :3] * base_origin, axis=-1) + m[:, 3]
     new_direction = jnp.sum(m[:, :3] * base_direction, axis=-1)
