@@ -77,6 +77,17 @@ class MotionSpec:
             if value not in BORDERS:
                 raise ValueError(f"{owner}: {name} must be one of {BORDERS}, got {value!r}")
 
+    def interpolate(self, keys: Any, time: Any) -> jax.Array:
+        """Keyframes ``keys`` ``(K, ...)`` blended at a scalar ``time`` as the traversal blends them (clamped
+        outside the range): e.g. the vertices a ray at ``time`` sees.
+
+        Examples:
+          >>> import jaxrt as rt
+          >>> float(rt.MotionSpec(0.0, 1.0).interpolate([0.0, 2.0, 4.0], 0.25))
+          1.0
+        """
+        return at_time(keys, self, time)
+
 
 class KeyframePosition(NamedTuple):
     """Where a time falls among the keyframes: blend ``keys[index]`` and ``keys[index + 1]`` by ``weight``."""
