@@ -300,6 +300,14 @@ def test_motion_tags_and_coverage():
         _ = rt.Intersector().intersect(ray, rt.build_primitive_structure(rt.TriangleGeometry(keys[0]))).time
     view = scene_view(s)
     assert view.layout.motion and view.leaves.motion is not None
+    # Counting crosses the triangles blended at each ray's time: a plate that rises through z = 0 by t = 1.
+    plate = np.array([[-1.0, -1, -1], [2, -1, -1], [-1, 2, -1]], np.float32)
+    rising = rt.build_primitive_structure(
+        rt.MotionTriangleGeometry(np.stack([plate, plate + [0, 0, 2]])), motion=rt.MotionSpec()
+    )
+    up = rt.Ray([[0.0, 0, 0]] * 3, [0.0, 0, 1], 0.0, 5.0, time=[0.0, 0.4, 0.6])
+    counts = rt.count_intersections(up, rising, rt.Intersector(rt.tags.primitive_motion))
+    assert counts.tolist() == [0, 0, 1]
     assert not scene_view(rt.build_primitive_structure(rt.TriangleGeometry(keys[0]))).layout.motion
     assert pipeline.kernel_declines(rt.Intersector(rt.tags.primitive_motion), s.geometry_info) == (
         "keyframe motion is not covered by the GPU kernel"

@@ -292,7 +292,7 @@ def count_intersections(
     if base.max_hits is not None or base.accept_any_intersection:
         raise ValueError("count_intersections: the intersector must not set max_hits or accept_any_intersection")
     counting = _CountingIntersector(
-        *(t for t in base.tags if t.name in ("instancing", "max_levels")),
+        *(t for t in base.tags if t.name in ("instancing", "max_levels", "primitive_motion", "instance_motion")),
         accept_any_intersection=False,
         triangle_cull_mode=base.triangle_cull_mode,
         front_facing_winding=base.front_facing_winding,
