@@ -1,12 +1,12 @@
 """Motion blur: a spinning, sliding cube (instance motion) and a rolling ball (primitive motion) over a
-static floor, each pixel averaging rays at random times in the shutter interval.
+static floor, each pixel averaging rays at stratified random times in the shutter interval.
 
 The cube's instance has five keyframed transforms (a quarter turn and a slide), blended at each ray's time;
 the ball is a ``MotionBoundingBoxGeometry`` whose intersection function (a sphere inscribed in the box) sees
 the box blended at the ray's time. Everything else is ordinary tracing: one ``Intersector`` with the
 ``instance_motion`` and ``primitive_motion`` tags.
 
-Run: ``python examples/motion_blur.py [--width 160] [--height 120] [--samples 8] [--out out/motion_blur.png]``
+Run: ``python examples/motion_blur.py [--width 160] [--height 120] [--samples 16] [--out out/motion_blur.png]``
 """
 
 from __future__ import annotations
@@ -75,7 +75,7 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--width", type=int, default=160)
     parser.add_argument("--height", type=int, default=120)
-    parser.add_argument("--samples", type=int, default=8, help="rays (random times) per pixel")
+    parser.add_argument("--samples", type=int, default=16, help="rays (random times) per pixel")
     parser.add_argument("--out", default="out/motion_blur.png")
     args = parser.parse_args(argv)
 
@@ -98,7 +98,9 @@ def main(argv=None) -> dict:
                 args.width, args.height, eye=(0.0, 2.2, 5.5), target=(0.0, 0.4, 0.0), fov_degrees=40, key=k
             )
         )(keys)
-        times = jax.random.uniform(time_key, camera.shape)
+        # Stratified shutter times: sample s of every pixel falls in the s-th of `samples` equal intervals.
+        strata = jnp.arange(args.samples, dtype=jnp.float32).reshape(-1, 1, 1)
+        times = (strata + jax.random.uniform(time_key, camera.shape)) / args.samples
         rays = rt.Ray(camera.origin, camera.direction, time=times).reshape(-1)
         hit = intersector.intersect(rays, structure)
         point = rt.shading.hit_points(rays, hit)

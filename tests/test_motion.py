@@ -238,7 +238,7 @@ def test_instance_box_bounds_every_keyframe():
         assert (corners >= lower - 1e-5).all() and (corners <= upper + 1e-5).all()
 
 
-def test_node_boxes_are_the_union_of_the_keyframe_boxes():
+def test_node_boxes_are_the_union_and_per_keyframe_boxes():
     keys = _triangle_keys(np.random.default_rng(6), 4, 5)
     s = rt.build_primitive_structure(rt.MotionTriangleGeometry(keys), motion=SPECS[0])
     assert s.keyframe_count == 4 and s.motion_triangle.shape == (4, 8, 3, 3)
@@ -251,6 +251,15 @@ def test_node_boxes_are_the_union_of_the_keyframe_boxes():
             continue
         np.testing.assert_array_equal(lower[node, side], leaf_keys[:, leaf].min(axis=(0, 1)))
         np.testing.assert_array_equal(upper[node, side], leaf_keys[:, leaf].max(axis=(0, 1)))
+        # Per keyframe (what the traversal blends at a ray's time): the leaf's own box at that keyframe.
+        np.testing.assert_array_equal(np.asarray(s.motion_node_lower)[:, node, side], leaf_keys[:, leaf].min(axis=1))
+        np.testing.assert_array_equal(np.asarray(s.motion_node_upper)[:, node, side], leaf_keys[:, leaf].max(axis=1))
+    # Inner nodes: each keyframe's box holds its children's boxes at that keyframe.
+    keyed_lower, keyed_upper = np.asarray(s.motion_node_lower), np.asarray(s.motion_node_upper)
+    for node, side in zip(*np.nonzero(children >= 0), strict=True):
+        child = children[node, side]
+        assert (keyed_lower[:, node, side] <= keyed_lower[:, child].min(axis=1)).all()
+        assert (keyed_upper[:, node, side] >= keyed_upper[:, child].max(axis=1)).all()
 
 
 def test_gradients_with_respect_to_keyframes_and_time():

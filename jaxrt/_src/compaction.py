@@ -129,6 +129,8 @@ def _compact_primitive(structure: PrimitiveAccelerationStructure) -> PrimitiveAc
         motion_triangle=_trim_keys(structure.motion_triangle, capacity),
         motion_curve=_trim_keys(structure.motion_curve, capacity),
         motion_box=_trim_keys(structure.motion_box, capacity),
+        motion_node_lower=_trim_keys(structure.motion_node_lower, nodes),
+        motion_node_upper=_trim_keys(structure.motion_node_upper, nodes),
     )
 
 

@@ -271,6 +271,9 @@ def _primitive_traversal(structure: PrimitiveAccelerationStructure) -> tuple[Tra
         instance_facing=jnp.zeros((0,), jnp.int32),
         instance_mask=jnp.zeros((0,), jnp.uint32),
         node_range=structure.node_range,
+        node_motion=None
+        if structure.motion_node_lower is None
+        else (structure.motion_node_lower, structure.motion_node_upper),
     )
     layout = TraversalLayout(
         root=0,
@@ -278,6 +281,7 @@ def _primitive_traversal(structure: PrimitiveAccelerationStructure) -> tuple[Tra
         levels=0,
         stack_size=structure.max_depth,
         motion=structure.motion is not None,
+        node_spec=structure.motion if structure.motion_node_lower is not None else None,
     )
     return view, layout
 

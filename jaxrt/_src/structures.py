@@ -33,11 +33,15 @@ array               shape, dtype    contents
                                     linear in the control points, so blending packed keyframes packs the
                                     blended curve)
 ``motion_box``      (K, C, 2, 3) f  with motion and bounding boxes: ``leaf_box`` per keyframe
+``motion_node_lower`` (K, C-1, 2, 3) with motion: the child boxes of every node at each keyframe (and
+``motion_node_upper``               its upper corners); blended at a ray's time they bound the subtree then
 ==================  ==============  ================================================================
 
-With keyframe motion (static ``motion``, a :class:`~jaxrt.MotionSpec`) the node boxes bound each primitive
-over every keyframe (the union of its keyframe boxes), and the leaf tests blend the keyframe rows at each
-ray's time (:mod:`jaxrt._src.motion`).
+With keyframe motion (static ``motion``, a :class:`~jaxrt.MotionSpec`) ``node_lower``/``node_upper`` bound
+each primitive over every keyframe (the union of its keyframe boxes; instance boxes and the SAH cost read
+them), ``motion_node_lower``/``motion_node_upper`` hold the node boxes of each keyframe, which the traversal
+blends at each ray's time ("linear bounds", as Embree's motion-blur BVHs interpolate node bounds), and the
+leaf tests blend the keyframe rows (:mod:`jaxrt._src.motion`).
 
 The kind of a leaf (triangle, curve, bounding box) and whether it is opaque follow from its geometry index
 and the static :class:`GeometryInfo` of that geometry. Internal node 0 is the root. Every leaf holds one
@@ -107,6 +111,8 @@ class PrimitiveAccelerationStructure:
     motion_triangle: jax.Array | None = None
     motion_curve: jax.Array | None = None
     motion_box: jax.Array | None = None
+    motion_node_lower: jax.Array | None = None
+    motion_node_upper: jax.Array | None = None
     motion: MotionSpec | None = dataclasses.field(default=None, metadata=dict(static=True))
 
     @property
@@ -316,15 +322,27 @@ def _build(
         max_depth = tree_depth_bound(capacity)  # PrimitiveAccelerationStructure.max_depth
         children, node_range, position = restructure(lower[order], upper[order], count, children, node_range, max_depth)
         order = order[position]
-    leaf_lower, leaf_upper = lower[order], upper[order]
-    if quality == "high":
-        node_lower, node_upper = _node_boxes(children, node_range, leaf_lower, leaf_upper)
-    else:  # the unused rows past the tree over the real leaves stay empty
+
+    def boxes_of(lower, upper):
+        leaf_lower, leaf_upper = lower[order], upper[order]
+        if quality == "high":
+            return _node_boxes(children, node_range, leaf_lower, leaf_upper)
+        # the unused rows past the tree over the real leaves stay empty
         node_lower, node_upper = _node_boxes(
             children[: real - 1], node_range[: real - 1], leaf_lower[:real], leaf_upper[:real]
         )
         node_lower = jnp.pad(node_lower, ((0, capacity - real), (0, 0), (0, 0)), constant_values=jnp.inf)
         node_upper = jnp.pad(node_upper, ((0, capacity - real), (0, 0), (0, 0)), constant_values=-jnp.inf)
+        return node_lower, node_upper
+
+    node_lower, node_upper = boxes_of(lower, upper)
+    motion_nodes = {}
+    if count_keys > 1:  # the node boxes of every keyframe: blended at a ray's time they bound the blend
+        keyed = [boxes_of(*_keyframe_boxes(f)) for f in frames]
+        motion_nodes = dict(
+            motion_node_lower=lax.stop_gradient(jnp.stack([b[0] for b in keyed])),
+            motion_node_upper=lax.stop_gradient(jnp.stack([b[1] for b in keyed])),
+        )
     info = tuple(_geometry_info(g) for g in geometries)
     return PrimitiveAccelerationStructure(
         node_lower=lax.stop_gradient(node_lower),
@@ -341,7 +359,18 @@ def _build(
         leaf_box=None if boxes is None else lax.stop_gradient(boxes[order]),
         leaf_primitive_data=gather_leaf_data(geometries, capacity, order),
         **_motion_leaves(frames, order, motion),
+        **motion_nodes,
     )
+
+
+def _keyframe_boxes(frame) -> tuple[jax.Array, jax.Array]:
+    """Leaf boxes of one keyframe in slot order, where a triangle without area keeps its (flat) box: a
+    triangle flat at one keyframe may have area between keyframes, and the blend needs finite corners."""
+    triangles, _, _, lower, upper, valid, _, _ = frame
+    flat = valid & jnp.any(lower > upper, axis=-1)
+    lower = jnp.where(flat[:, None], jnp.min(triangles, axis=1), lower)
+    upper = jnp.where(flat[:, None], jnp.max(triangles, axis=1), upper)
+    return lower, upper
 
 
 def _motion_leaves(frames: list, order: jax.Array, motion: MotionSpec | None) -> dict:

@@ -248,9 +248,10 @@ def visit(
     else:
         origin, inv_direction, context = ray.origin, ray.inv_direction, ray.context
     children = scene.node_children[s.node]
-    box_hit, t_near = ray_box(
-        origin, inv_direction, ray.t_min, s.distance, scene.node_lower[s.node], scene.node_upper[s.node]
-    )
+    lower, upper = scene.node_lower[s.node], scene.node_upper[s.node]
+    if scene.node_motion is not None:  # the node's keyframe boxes blended at the ray's time
+        lower, upper = _node_boxes_at(scene.node_motion, layout.node_spec, s.node, ray.time)
+    box_hit, t_near = ray_box(origin, inv_direction, ray.t_min, s.distance, lower, upper)
     box_hit &= active
     is_leaf = children < 0
     leaf_index = -1 - children
@@ -326,6 +327,22 @@ def visit(
         level=jnp.where(go, jnp.where(pop, top_level, s.level), s.level),
         hit_chain=hit_chain,
     )
+
+
+def _node_boxes_at(node_motion: Any, spec: Any, node: jax.Array, time: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Node ``node``'s child boxes blended at ``time``. Each primitive blended at ``time`` lies in the blend of
+    its keyframe boxes, which lies in the blend of the node's keyframe boxes (rounding is monotone, so also
+    in floating point); equal corners (empty children, static geometry) are kept as they are."""
+    from jaxrt._src.motion import blend, spec_position
+
+    lower_keys, upper_keys = node_motion
+    p = spec_position(spec, lower_keys.shape[0], time)
+
+    def at(keys):
+        a, b = keys[p.index, node], keys[p.index + 1, node]
+        return jnp.where(a == b, a, blend(a, b, p.weight))
+
+    return at(lower_keys), at(upper_keys)
 
 
 def _instance_visible(motion: Any, instance: jax.Array, time: jax.Array) -> jax.Array:
