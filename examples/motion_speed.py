@@ -8,7 +8,7 @@ the leaf tests read). Primary rays from a pinhole camera, one random time per ra
 
 Usage::
 
-    python examples/motion_speed.py [--segments 224] [--rays 65536] [--repeats 3]
+    python examples/motion_speed.py [--segments 224] [--rays 65536] [--rounds 5]
 """
 
 from __future__ import annotations
@@ -54,44 +54,44 @@ def keyframe_tree(structure: rt.PrimitiveAccelerationStructure, k: int) -> rt.Pr
     )
 
 
-def seconds(fn, repeats: int) -> float:
-    jax.block_until_ready(fn())  # compile
-    best = np.inf
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        best = min(best, time.perf_counter() - start)
-    return best
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--segments", type=int, default=224)
     parser.add_argument("--rays", type=int, default=65536)
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--rounds", type=int, default=5, help="timed rounds (each times every structure once)")
     args = parser.parse_args()
     vertices, indices = uv_sphere(args.segments)
     rays = camera_rays(args.rays)
     print(f"{indices.shape[0]} triangles, {rays.shape[0]} rays, backend {jax.default_backend()}")
-    static = rt.build_primitive_structure(rt.TriangleGeometry(vertices, indices))
-    plain = rt.Intersector(backend="portable")
-    base = seconds(lambda: plain.intersect(rays, static).distance, args.repeats)
-    base_sah = rt.sah_cost(static)
-    print(f"static      {rays.shape[0] / base / 1e6:6.3f} Mrays/s  SAH {base_sah:8.2f}")
-    moving = rt.Intersector(rt.tags.primitive_motion, backend="portable")
     spec = rt.MotionSpec(0.0, 1.0)
+    plain = rt.Intersector(backend="portable")
+    moving = rt.Intersector(rt.tags.primitive_motion, backend="portable")
+    static = rt.build_primitive_structure(rt.TriangleGeometry(vertices, indices))
+    runs = {"static": (lambda: plain.intersect(rays, static).distance, rt.sah_cost(static), None)}
     for keyframes in (2, 4, 8):
         shift = np.linspace(0.0, 0.2, keyframes)  # 10% of the diameter (2) over the range
         keys = jnp.asarray(vertices[None] + shift[:, None, None] * np.array([1.0, 0.0, 0.0], np.float32))
         s = rt.build_primitive_structure(rt.MotionTriangleGeometry(keys, indices), motion=spec)
-        took = seconds(lambda s=s: moving.intersect(rays, s).distance, args.repeats)
-        sah = rt.sah_cost(s)
         # The boxes a ray at a keyframe's time meets: that keyframe's node boxes (the traversal blends them).
-        keyed = np.mean([rt.sah_cost(keyframe_tree(s, k)) for k in range(keyframes)])
-        print(
-            f"{keyframes} keyframes {rays.shape[0] / took / 1e6:6.3f} Mrays/s  SAH {sah:8.2f} union, {keyed:6.2f} "
-            f"per keyframe  (speed {base / took:.2f}x static, SAH {sah / base_sah:.2f}x / {keyed / base_sah:.2f}x static)"
-        )
+        keyed = float(np.mean([rt.sah_cost(keyframe_tree(s, k)) for k in range(keyframes)]))
+        runs[f"{keyframes} keyframes"] = (lambda s=s: moving.intersect(rays, s).distance, rt.sah_cost(s), keyed)
+    for fn, _, _ in runs.values():
+        jax.block_until_ready(fn())  # compile
+    best = dict.fromkeys(runs, np.inf)
+    for _ in range(args.rounds):  # interleaved, so that a busy machine slows every run alike
+        for name, (fn, _, _) in runs.items():
+            start = time.perf_counter()
+            jax.block_until_ready(fn())
+            best[name] = min(best[name], time.perf_counter() - start)
+    base, base_sah = best["static"], runs["static"][1]
+    for name, (_, sah, keyed) in runs.items():
+        line = f"{name:11s} {rays.shape[0] / best[name] / 1e6:6.3f} Mrays/s  SAH {sah:7.2f}"
+        if keyed is not None:
+            line += (
+                f" union, {keyed:6.2f} per keyframe (speed {base / best[name]:.2f}x static; SAH "
+                f"{sah / base_sah:.2f}x union, {keyed / base_sah:.2f}x per keyframe)"
+            )
+        print(line)
 
 
 if __name__ == "__main__":
