@@ -75,6 +75,9 @@ def main() -> None:
         # The boxes a ray at a keyframe's time meets: that keyframe's node boxes (the traversal blends them).
         keyed = float(np.mean([rt.sah_cost(keyframe_tree(s, k)) for k in range(keyframes)]))
         runs[f"{keyframes} keyframes"] = (lambda s=s: moving.intersect(rays, s).distance, rt.sah_cost(s), keyed)
+        if keyframes == 2:  # the same structure traced with its union boxes only (no blended node boxes)
+            union = dataclasses.replace(s, motion_node_lower=None, motion_node_upper=None)
+            runs["2, union"] = (lambda u=union: moving.intersect(rays, u).distance, rt.sah_cost(s), rt.sah_cost(s))
     for fn, _, _ in runs.values():
         jax.block_until_ready(fn())  # compile
     best = dict.fromkeys(runs, np.inf)
