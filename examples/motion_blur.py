@@ -52,7 +52,7 @@ def scene():
     triangles, face_normals = cube()
     floor = np.array([[-6.0, 0, -6], [6, 0, 6], [6, 0, -6], [-6, 0, -6], [-6, 0, 6], [6, 0, 6]], np.float32)
     radius = 0.45
-    centres = np.stack([np.linspace(-2.2, -0.6, KEYS), np.full(KEYS, radius), np.full(KEYS, 1.0)], -1)
+    centres = np.stack([np.linspace(-2.0, -1.3, KEYS), np.full(KEYS, radius), np.full(KEYS, 1.0)], -1)
     ball = rt.MotionBoundingBoxGeometry(centres[:, None] - radius, centres[:, None] + radius)
     structures = [
         rt.build_primitive_structure(rt.TriangleGeometry(floor)),
