@@ -18,8 +18,8 @@ from jaxrt._src.bvh.sah import sah_cost
 from jaxrt._src.candidate import BoundingBoxCandidate, TriangleCandidate
 from jaxrt._src.checks import BuildCheckError
 from jaxrt._src.compaction import compact
-from jaxrt._src.curves import CurveBasis, CurveEndCaps, CurveGeometry, CurveType
-from jaxrt._src.geometry import BoundingBoxGeometry, TriangleGeometry
+from jaxrt._src.curves import CurveBasis, CurveEndCaps, CurveGeometry, CurveType, MotionCurveGeometry
+from jaxrt._src.geometry import BoundingBoxGeometry, MotionBoundingBoxGeometry, MotionTriangleGeometry, TriangleGeometry
 from jaxrt._src.instances import (
     InstanceAccelerationStructure,
     InstanceOptions,
@@ -29,6 +29,7 @@ from jaxrt._src.instances import (
 )
 from jaxrt._src.intersector import Intersector, count_intersections
 from jaxrt._src.io.structure_file import load, save
+from jaxrt._src.motion import MotionSpec
 from jaxrt._src.numerics import offset_ray_origin
 from jaxrt._src.primitives.curve import CurveOptions
 from jaxrt._src.query import IntersectionQuery, intersection_query
@@ -55,6 +56,10 @@ __all__ = [
     "IntersectionResult",
     "IntersectionType",
     "Intersector",
+    "MotionBoundingBoxGeometry",
+    "MotionCurveGeometry",
+    "MotionSpec",
+    "MotionTriangleGeometry",
     "PrimitiveAccelerationStructure",
     "Ray",
     "StructureSizes",

@@ -522,7 +522,9 @@ def test_bad_instances_are_rejected():
         rt.Instances([0], eye, options=rt.InstanceOptions.OPAQUE | rt.InstanceOptions.NON_OPAQUE)
     with pytest.raises(ValueError, match=r"mask values must be in \[0, 2\*\*32\)"):
         rt.Instances([0], eye, mask=-1)
-    with pytest.raises(NotImplementedError, match="instance motion"):
-        rt.Instances([0], np.stack([eye, eye], axis=1))
+    with pytest.raises(ValueError, match=r"need K >= 2 keyframes"):
+        rt.Instances([0], eye[:, None])
+    with pytest.raises(ValueError, match="keyframed.*instance motion.*motion=rt.MotionSpec"):
+        rt.build_instance_structure([_blas()], rt.Instances([0], np.stack([eye, eye], axis=1)))
     with pytest.raises(TypeError, match=r"structures\[0\] is a str"):
         rt.build_instance_structure(["x"], rt.Instances([0], eye))

@@ -97,6 +97,11 @@ def _trim(x: Any, rows: int) -> Any:
     return None if x is None else jax.tree_util.tree_map(lambda a: a[:rows], x)
 
 
+def _trim_keys(x: jax.Array | None, rows: int) -> jax.Array | None:
+    """Keyframe leaf arrays ``(K, C, ...)`` trimmed to ``rows`` leaves."""
+    return None if x is None else x[:, :rows]
+
+
 def _compact_primitive(structure: PrimitiveAccelerationStructure) -> PrimitiveAccelerationStructure:
     capacity, clustered = compact_capacity(structure)
     if capacity == structure.capacity:
@@ -121,6 +126,11 @@ def _compact_primitive(structure: PrimitiveAccelerationStructure) -> PrimitiveAc
         leaf_curve_flags=_trim(structure.leaf_curve_flags, capacity),
         leaf_box=_trim(structure.leaf_box, capacity),
         leaf_primitive_data=_trim(structure.leaf_primitive_data, capacity),
+        motion_triangle=_trim_keys(structure.motion_triangle, capacity),
+        motion_curve=_trim_keys(structure.motion_curve, capacity),
+        motion_box=_trim_keys(structure.motion_box, capacity),
+        motion_node_lower=_trim_keys(structure.motion_node_lower, nodes),
+        motion_node_upper=_trim_keys(structure.motion_node_upper, nodes),
     )
 
 

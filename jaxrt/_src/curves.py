@@ -39,6 +39,7 @@ import numpy as np
 from jaxrt._src.geometry import _as_float_array, _check_finite, _check_primitive_data, _is_concrete
 
 __all__ = [
+    "MotionCurveGeometry",
     "CurveBasis",
     "CurveType",
     "CurveEndCaps",
@@ -341,6 +342,121 @@ class CurveGeometry:
             f"CurveGeometry(control_points={tuple(self.control_points.shape)}, segments={self.primitive_count}, "
             f"basis={self.basis.value!r}, control_point_count={self.control_point_count}, "
             f"curve_type={self.curve_type.value!r}, end_caps={self.end_caps.value!r}, opaque={self.opaque})"
+        )
+
+
+@jax.tree_util.register_pytree_node_class
+class MotionCurveGeometry:
+    """Curves whose control points and radii move through ``K >= 2`` keyframes (Metal's motion curve geometry).
+
+    A ray with time ``t`` sees the control points and radii blended linearly between its two neighbouring
+    keyframes (over the structure's :class:`~jaxrt.MotionSpec` range); the segment indices, basis, type and
+    end caps are shared by every keyframe.
+
+    Args:
+      control_points: ``(K, P, 3)`` float control points per keyframe (or a sequence of ``K`` ``(P, 3)``).
+      radii: ``(K, P)`` non-negative radii per keyframe.
+      indices, basis, control_point_count, curve_type, end_caps, primitive_data, opaque: as
+        :class:`CurveGeometry`.
+
+    Raises:
+      TypeError, ValueError: fewer than 2 keyframes, keyframe shapes that differ (between keyframes or between
+        points and radii), non-finite values, or any error of :class:`CurveGeometry` on a keyframe.
+
+    Examples:
+      >>> import jaxrt as rt
+      >>> points = [[[0., 0, 0], [1, 0, 0]], [[0., 1, 0], [1, 1, 0]]]
+      >>> g = rt.MotionCurveGeometry(points, [[.1, .1], [.1, .1]], [0], basis="linear", control_point_count=2)
+      >>> g.keyframe_count, g.primitive_count
+      (2, 1)
+    """
+
+    kind = "curve"
+    motion = True
+
+    def __init__(
+        self,
+        control_points: Any,
+        radii: Any,
+        indices: Any,
+        *,
+        basis: CurveBasis | str,
+        control_point_count: int,
+        curve_type: CurveType | str = "round",
+        end_caps: CurveEndCaps | str = "none",
+        primitive_data: Any = None,
+        opaque: bool = True,
+    ):
+        from jaxrt._src.geometry import keyframe_error, keyframe_stack
+
+        owner = "MotionCurveGeometry"
+        points = keyframe_stack(control_points, "control_points", owner, (-1, 3))
+        radii = keyframe_stack(radii, "radii", owner, (-1,))
+        if radii.shape != points.shape[:2]:
+            raise ValueError(
+                f"{owner}: radii must have shape (K, P) = {tuple(points.shape[:2])} like control_points, got "
+                f"{tuple(radii.shape)}"
+            )
+        options = dict(
+            basis=basis,
+            control_point_count=control_point_count,
+            curve_type=curve_type,
+            end_caps=end_caps,
+            opaque=opaque,
+        )
+        for k in range(points.shape[0]):
+            try:
+                frame = CurveGeometry(
+                    points[k], radii[k], indices, primitive_data=primitive_data if k == 0 else None, **options
+                )
+            except (TypeError, ValueError) as error:
+                raise keyframe_error(owner, k, error) from None
+        self.control_points = points
+        self.radii = radii
+        self.indices = frame.indices
+        self.primitive_data = primitive_data
+        self.basis = frame.basis
+        self.control_point_count = frame.control_point_count
+        self.curve_type = frame.curve_type
+        self.end_caps = frame.end_caps
+        self.opaque = frame.opaque
+
+    @property
+    def keyframe_count(self) -> int:
+        """``K`` (static)."""
+        return int(self.control_points.shape[0])
+
+    @property
+    def primitive_count(self) -> int:
+        """Number of segments (static)."""
+        return int(self.indices.shape[0])
+
+    @property
+    def info(self) -> CurveInfo:
+        """The static description (basis, count, type, caps)."""
+        return CurveInfo(self.basis, self.control_point_count, self.curve_type, self.end_caps)
+
+    def keyframe(self, k: int) -> CurveGeometry:
+        """The static geometry of keyframe ``k`` (differentiable; no validation, so usable inside ``jit``)."""
+        children, aux = self.tree_flatten()
+        points, radii, indices, data = children
+        return CurveGeometry.tree_unflatten(aux, (points[k], radii[k], indices, data))
+
+    def tree_flatten(self):
+        children = (self.control_points, self.radii, self.indices, self.primitive_data)
+        return children, (self.basis, self.control_point_count, self.curve_type, self.end_caps, self.opaque)
+
+    @classmethod
+    def tree_unflatten(cls, aux, children):
+        obj = object.__new__(cls)
+        obj.control_points, obj.radii, obj.indices, obj.primitive_data = children
+        obj.basis, obj.control_point_count, obj.curve_type, obj.end_caps, obj.opaque = aux
+        return obj
+
+    def __repr__(self) -> str:
+        return (
+            f"MotionCurveGeometry(keyframes={self.keyframe_count}, segments={self.primitive_count}, "
+            f"basis={self.basis.value!r}, control_point_count={self.control_point_count})"
         )
 
 

@@ -19,7 +19,7 @@ from jax import lax
 
 from jaxrt._src import leaves as leaf_tests
 from jaxrt._src import normals as hit_normals
-from jaxrt._src.instances import apply_transform, compose_transforms, invert_transform
+from jaxrt._src.instances import apply_transform, compose_transforms, instance_motion_at, invert_transform
 from jaxrt._src.primitive_data import data_at
 from jaxrt._src.primitives import triangle
 from jaxrt._src.result import IntersectionType
@@ -34,7 +34,15 @@ NO_USER_ID = 0xFFFFFFFF
 class _Chain:
     """The composed transforms of each hit's instance chain, and the ray in the hit's object space."""
 
-    def __init__(self, view: SceneView, chain: jax.Array, found: jax.Array, origin: jax.Array, direction: jax.Array):
+    def __init__(
+        self,
+        view: SceneView,
+        chain: jax.Array,
+        found: jax.Array,
+        origin: jax.Array,
+        direction: jax.Array,
+        time: jax.Array | None = None,
+    ):
         detached = lax.stop_gradient
         instances = view.instances
         dtype = origin.dtype
@@ -45,8 +53,13 @@ class _Chain:
         # The stored inverses (the values the traversal used), differentiated as the inverse of the transforms.
         inverse = invert_transform(instances.transform)
         world_to_object_rows = detached(instances.world_to_object) + (inverse - detached(inverse))
-        to_world = jnp.where(self.valid[..., None, None], instances.transform[self.g], identity)  # (n, L, 3, 4)
-        to_object = jnp.where(self.valid[..., None, None], world_to_object_rows[self.g], identity)
+        to_world, to_object = instances.transform[self.g], world_to_object_rows[self.g]
+        if instances.motion is not None and time is not None:  # moving instances: blended at the ray's time
+            moved, inverse, _, moving = instance_motion_at(instances.motion, self.g, time[:, None])
+            to_world = jnp.where(moving[..., None, None], moved, to_world)
+            to_object = jnp.where(moving[..., None, None], inverse, to_object)
+        to_world = jnp.where(self.valid[..., None, None], to_world, identity)  # (n, L, 3, 4)
+        to_object = jnp.where(self.valid[..., None, None], to_object, identity)
         object_to_world = jnp.broadcast_to(identity, (chain.shape[0], 3, 4))
         world_to_object = object_to_world
         for level in range(chain.shape[1]):
@@ -113,11 +126,14 @@ def _box_distance(intersector, view, leaf, is_box, origin, direction, t_min, t_m
     ray_direction = jnp.where(is_box[:, None], direction, jnp.array([0.0, 0.0, 1.0], direction.dtype))
     t_max = jnp.where(is_box, detached(t_max), 1.0)
 
-    def one(o, d, lo, hi, k):
-        ray = leaf_tests.function_ray(o, d, lo, hi)
-        return leaf_tests.call_function(intersector.intersection_functions, ray, leaf_tests.box_candidate(view, k))
+    boxes = view.leaves.box[leaf]  # gathered per ray: a moving box is blended at each ray's time
 
-    accept, smooth = jax.vmap(one)(ray_origin, ray_direction, jnp.where(is_box, t_min, 0.0), t_max, leaf)
+    def one(o, d, lo, hi, k, box):
+        ray = leaf_tests.function_ray(o, d, lo, hi)
+        candidate = leaf_tests.box_candidate(view, k, box=box)
+        return leaf_tests.call_function(intersector.intersection_functions, ray, candidate)
+
+    accept, smooth = jax.vmap(one)(ray_origin, ray_direction, jnp.where(is_box, t_min, 0.0), t_max, leaf, boxes)
     attached = detached(distance) + jnp.where(accept, smooth - detached(smooth), 0.0)
     return jnp.where(is_box, attached, jnp.inf)
 
@@ -132,10 +148,16 @@ def hit_fields(
     leaf: jax.Array,
     distance: jax.Array,
     chain: jax.Array,
+    *,
+    time: jax.Array | None = None,
 ) -> dict[str, Any]:
     """The hit fields of rays ``(n,)`` whose traversal found ``leaf`` (``-1``: a miss) at ``distance`` through
-    the instance ``chain`` ``(n, levels)``."""
+    the instance ``chain`` ``(n, levels)``; ``time`` ``(n,)`` with keyframe motion: moving primitives are
+    re-intersected as blended at each ray's time (differentiable in the keyframes and the time)."""
     from jaxrt._src import curves as curve_support
+
+    if time is not None and view.leaves.motion is not None:
+        view = view.at(view.keyframe_position(time))
 
     detached = lax.stop_gradient
     dtype = origin.dtype
@@ -143,7 +165,7 @@ def hit_fields(
     found = leaf >= 0
     leaf = jnp.maximum(leaf, 0)
     leaves = view.leaves
-    transforms = _Chain(view, chain, found, origin, direction) if view.levels else None
+    transforms = _Chain(view, chain, found, origin, direction, time) if view.levels else None
     object_origin, object_direction = (transforms.origin, transforms.direction) if transforms else (origin, direction)
     kinds = view.kinds
     hit = found  # triangle hits, once the other kinds are taken out

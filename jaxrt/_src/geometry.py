@@ -13,7 +13,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["TriangleGeometry", "BoundingBoxGeometry", "float_dtype"]
+__all__ = [
+    "BoundingBoxGeometry",
+    "MotionBoundingBoxGeometry",
+    "MotionTriangleGeometry",
+    "TriangleGeometry",
+    "float_dtype",
+    "keyframe_error",
+    "keyframe_stack",
+]
 
 
 def float_dtype() -> jnp.dtype:
@@ -221,3 +229,184 @@ class BoundingBoxGeometry:
 
     def __repr__(self) -> str:
         return f"BoundingBoxGeometry(boxes={self.primitive_count}, opaque={self.opaque})"
+
+
+# --- keyframe motion ---------------------------------------------------------------------------------------------
+
+
+def keyframe_stack(value: Any, name: str, owner: str, trailing: tuple[int, ...] | None = None) -> jax.Array:
+    """A float ``(K, ...)`` keyframe array from an array or a sequence of per-keyframe arrays, validated.
+
+    Raises a ``ValueError`` naming ``owner`` and ``name`` for fewer than two keyframes, keyframes of different
+    shapes, a wrong trailing shape (``trailing``; ``-1`` matches any size) or non-finite values.
+    """
+    if isinstance(value, list | tuple) and value and not np.isscalar(value[0]):
+        frames = [_as_float_array(v, f"{name}[{k}]", owner) for k, v in enumerate(value)]
+        for k, frame in enumerate(frames[1:], 1):
+            if frame.shape != frames[0].shape:
+                raise ValueError(
+                    f"{owner}: keyframe {k} of {name} has shape {tuple(frame.shape)}, keyframe 0 has "
+                    f"{tuple(frames[0].shape)}; every keyframe needs the same shape"
+                )
+        value = jnp.stack(frames)
+    else:
+        value = _as_float_array(value, name, owner)
+    if value.ndim < 1 or value.shape[0] < 2:
+        raise ValueError(
+            f"{owner}: {name} needs at least 2 keyframes on its leading axis, got shape {tuple(value.shape)}"
+        )
+    if trailing is not None and (
+        value.ndim != 1 + len(trailing) or any(t not in (-1, s) for t, s in zip(trailing, value.shape[1:], strict=True))
+    ):
+        want = ", ".join("n" if t == -1 else str(t) for t in trailing)
+        raise ValueError(f"{owner}: {name} must have shape (K, {want}), got {tuple(value.shape)}")
+    _check_finite(value, name, owner)
+    return value
+
+
+def keyframe_error(owner: str, k: int, error: Exception) -> Exception:
+    """``error`` from validating keyframe ``k`` as a static geometry, reworded for ``owner``."""
+    message = str(error).split(": ", 1)[-1]
+    return type(error)(f"{owner}: keyframe {k}: {message}")
+
+
+@jax.tree_util.register_pytree_node_class
+class MotionTriangleGeometry:
+    """Triangles whose vertices move through ``K >= 2`` keyframes (Metal's motion triangle geometry).
+
+    The keyframes are evenly spaced over the structure's :class:`~jaxrt.MotionSpec` time range; a ray with
+    time ``t`` sees the vertices blended linearly between its two neighbouring keyframes.
+
+    Args:
+      vertices: ``(K, V, 3)`` float vertex positions per keyframe (or a sequence of ``K`` ``(V, 3)`` arrays).
+      indices: ``(T, 3)`` integer vertex indices, shared by every keyframe; ``None``: consecutive triples.
+      primitive_data: optional pytree with leading dimension ``T`` (per-triangle data; not keyframed).
+      opaque: static; ``False`` sends candidates to the filter.
+
+    Raises:
+      TypeError: non-float vertices or non-integer indices. ValueError: fewer than 2 keyframes, keyframes of
+        different shapes, non-finite vertices, or any error of :class:`TriangleGeometry` on a keyframe.
+
+    Examples:
+      >>> import jaxrt as rt
+      >>> tri = [[0., 0, 0], [1, 0, 0], [0, 1, 0]]
+      >>> g = rt.MotionTriangleGeometry([tri, [[0., 0, 1], [1, 0, 1], [0, 1, 1]]])
+      >>> g.keyframe_count, g.primitive_count
+      (2, 1)
+    """
+
+    kind = "triangle"
+    motion = True
+
+    def __init__(self, vertices: Any, indices: Any = None, *, primitive_data: Any = None, opaque: bool = True):
+        owner = "MotionTriangleGeometry"
+        vertices = keyframe_stack(vertices, "vertices", owner, (-1, 3))
+        try:
+            first = TriangleGeometry(vertices[0], indices, primitive_data=primitive_data, opaque=opaque)
+        except (TypeError, ValueError) as error:
+            raise keyframe_error(owner, 0, error) from None
+        self.vertices = vertices
+        self.indices = first.indices
+        self.primitive_data = primitive_data
+        self.opaque = bool(opaque)
+
+    @property
+    def keyframe_count(self) -> int:
+        """``K`` (static)."""
+        return int(self.vertices.shape[0])
+
+    @property
+    def primitive_count(self) -> int:
+        """Number of triangles (static)."""
+        return int(self.indices.shape[0])
+
+    def keyframe(self, k: int) -> TriangleGeometry:
+        """The static geometry of keyframe ``k`` (differentiable; no validation, so usable inside ``jit``)."""
+        return TriangleGeometry.tree_unflatten((self.opaque,), (self.vertices[k], self.indices, self.primitive_data))
+
+    def tree_flatten(self):
+        return (self.vertices, self.indices, self.primitive_data), (self.opaque,)
+
+    @classmethod
+    def tree_unflatten(cls, aux, children):
+        obj = object.__new__(cls)
+        obj.vertices, obj.indices, obj.primitive_data = children
+        (obj.opaque,) = aux
+        return obj
+
+    def __repr__(self) -> str:
+        return (
+            f"MotionTriangleGeometry(keyframes={self.keyframe_count}, vertices={tuple(self.vertices.shape[1:])}, "
+            f"triangles={self.primitive_count}, opaque={self.opaque})"
+        )
+
+
+@jax.tree_util.register_pytree_node_class
+class MotionBoundingBoxGeometry:
+    """Boxes that move through ``K >= 2`` keyframes (Metal's motion bounding-box geometry).
+
+    The intersection function receives the box blended at the ray's time in its candidate.
+
+    Args:
+      lower, upper: ``(K, N, 3)`` float box corners per keyframe (or sequences of ``K`` ``(N, 3)`` arrays).
+      primitive_data: optional pytree with leading dimension ``N``.
+      opaque: static; kept for Metal parity.
+
+    Raises:
+      TypeError: non-float corners. ValueError: fewer than 2 keyframes, keyframe shapes that differ (between
+        keyframes or between ``lower`` and ``upper``), non-finite corners, or an inverted box in a keyframe.
+
+    Examples:
+      >>> import jaxrt as rt
+      >>> g = rt.MotionBoundingBoxGeometry([[[0., 0, 0]], [[1., 0, 0]]], [[[1., 1, 1]], [[2., 1, 1]]])
+      >>> g.keyframe_count, g.primitive_count
+      (2, 1)
+    """
+
+    kind = "bounding_box"
+    motion = True
+
+    def __init__(self, lower: Any, upper: Any, *, primitive_data: Any = None, opaque: bool = True):
+        owner = "MotionBoundingBoxGeometry"
+        lower = keyframe_stack(lower, "lower", owner, (-1, 3))
+        upper = keyframe_stack(upper, "upper", owner, (-1, 3))
+        if lower.shape != upper.shape:
+            raise ValueError(
+                f"{owner}: lower {tuple(lower.shape)} and upper {tuple(upper.shape)} keyframes differ in shape"
+            )
+        for k in range(lower.shape[0]):
+            try:
+                BoundingBoxGeometry(lower[k], upper[k], primitive_data=primitive_data if k == 0 else None)
+            except (TypeError, ValueError) as error:
+                raise keyframe_error(owner, k, error) from None
+        self.lower = lower
+        self.upper = upper
+        self.primitive_data = primitive_data
+        self.opaque = bool(opaque)
+
+    @property
+    def keyframe_count(self) -> int:
+        """``K`` (static)."""
+        return int(self.lower.shape[0])
+
+    @property
+    def primitive_count(self) -> int:
+        """Number of boxes (static)."""
+        return int(self.lower.shape[1])
+
+    def keyframe(self, k: int) -> BoundingBoxGeometry:
+        """The static geometry of keyframe ``k`` (no validation, so usable inside ``jit``)."""
+        return BoundingBoxGeometry.tree_unflatten((self.opaque,), (self.lower[k], self.upper[k], self.primitive_data))
+
+    def tree_flatten(self):
+        return (self.lower, self.upper, self.primitive_data), (self.opaque,)
+
+    @classmethod
+    def tree_unflatten(cls, aux, children):
+        obj = object.__new__(cls)
+        obj.lower, obj.upper, obj.primitive_data = children
+        (obj.opaque,) = aux
+        return obj
+
+    def __repr__(self) -> str:
+        return f"MotionBoundingBoxGeometry(keyframes={self.keyframe_count}, boxes={self.primitive_count}, opaque={self.opaque})"

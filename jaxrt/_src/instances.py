@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 from collections.abc import Sequence
 from typing import Any, NamedTuple
 
@@ -48,6 +49,7 @@ from jaxrt._src.bvh.boxes import child_boxes, range_boxes
 from jaxrt._src.bvh.morton import morton_codes
 from jaxrt._src.bvh.radix_tree import build_radix_tree, tree_depth_bound
 from jaxrt._src.geometry import float_dtype
+from jaxrt._src.motion import MotionSpec
 from jaxrt._src.numerics import full_precision, gamma
 from jaxrt._src.structures import PrimitiveAccelerationStructure, capacity_bucket, refit_primitives
 
@@ -139,7 +141,11 @@ class Instances:
         :func:`build_instance_structure`.
       transform: ``(N, 3, 4)`` float object-to-world transforms, row-major with the translation in the last
         column (a point ``p`` in the child's space is at ``transform[:, :3] @ p + transform[:, 3]``). They must
-        be finite and invertible; mirroring (negative determinant) and non-uniform scale are fine.
+        be finite and invertible; mirroring (negative determinant) and non-uniform scale are fine. Instance
+        motion: ``(N, K, 3, 4)``, ``K >= 2`` keyframes per instance, evenly spaced over the time range of the
+        ``motion`` given to :func:`build_instance_structure`; a ray at time ``t`` sees each instance under the
+        component-wise blend of its two neighbouring keyframe transforms (Metal's default), whose inverse
+        moves the ray. Mirroring is read from keyframe 0.
       mask: instance masks, a scalar or ``(N,)``; an instance is visible to a ray when
         ``mask & ray.mask != 0`` (Metal's default instance mask is ``0xFF``).
       user_id: ``(N,)`` (or scalar) 32-bit user ids reported as ``user_instance_id``; ``None`` gives 0, as a
@@ -150,8 +156,7 @@ class Instances:
       TypeError: non-float transforms or non-integer indices, masks, ids or options.
       ValueError: wrong shapes, a negative structure index, a non-finite or singular transform, masks or ids
         outside 32 bits, unknown option bits, or ``OPAQUE`` together with ``NON_OPAQUE``. Each message names
-        the argument and the offending instance. NotImplementedError: ``(N, K, 3, 4)`` keyframed transforms
-        (instance motion).
+        the argument and the offending instance; ``(N, K, 3, 4)`` transforms with ``K < 2``.
 
     Inside ``jax.jit`` (traced arrays) only shapes and dtypes are checked.
 
@@ -169,17 +174,24 @@ class Instances:
         if dtype not in (np.float32, np.float64):
             raise TypeError(f"{owner}: transform must be float32 or float64, got dtype {dtype}")
         transform = jnp.asarray(transform, float_dtype())
-        if transform.ndim == 4 and transform.shape[-2:] == (3, 4):
-            raise NotImplementedError(
-                f"{owner}: keyframed transforms {tuple(transform.shape)} (instance motion) are not supported yet"
+        if transform.ndim not in (3, 4) or transform.shape[-2:] != (3, 4):
+            raise ValueError(
+                f"{owner}: transform must have shape (N, 3, 4), or (N, K, 3, 4) for instance motion, got "
+                f"{tuple(transform.shape)}"
             )
-        if transform.ndim != 3 or transform.shape[1:] != (3, 4):
-            raise ValueError(f"{owner}: transform must have shape (N, 3, 4), got {tuple(transform.shape)}")
+        if transform.ndim == 4 and transform.shape[1] < 2:
+            raise ValueError(
+                f"{owner}: keyframed transforms (N, K, 3, 4) need K >= 2 keyframes, got {tuple(transform.shape)}"
+            )
         n = int(transform.shape[0])
         if n == 0:
             raise ValueError(f"{owner}: transform is empty; an instance structure needs at least one instance slot")
         if _is_concrete(transform):
-            _check_transforms(transform, owner)
+            if transform.ndim == 4:
+                for k in range(transform.shape[1]):
+                    _check_transforms(transform[:, k], f"{owner} (keyframe {k})")
+            else:
+                _check_transforms(transform, owner)
         index_dtype = np.dtype(getattr(structure_index, "dtype", None) or np.asarray(structure_index).dtype)
         if not np.issubdtype(index_dtype, np.integer):
             raise TypeError(f"{owner}: structure_index must have an integer dtype, got {index_dtype}")
@@ -196,6 +208,7 @@ class Instances:
             raise ValueError(f"{owner}: structure_index must have shape ({n},), got {tuple(structure_index.shape)}")
         self.structure_index = jnp.asarray(structure_index, jnp.int32)
         self.transform = transform
+        self.keyframed = transform.ndim == 4
         self.mask = _uint32(mask, "mask", n, owner)
         self.user_id = _uint32(0 if user_id is None else user_id, "user_id", n, owner)
         options = _uint32(0 if options is None else options, "options", n, owner)
@@ -215,15 +228,27 @@ class Instances:
     @property
     def count(self) -> int:
         """Number of instance slots ``N`` (static)."""
-        return int(self.transform.shape[-3])
+        return int(self.transform.shape[-4 if self.keyframed else -3])
+
+    @property
+    def keyframe_count(self) -> int:
+        """Keyframes ``K`` of keyframed transforms (instance motion); 1 for ``(N, 3, 4)`` transforms."""
+        return int(self.transform.shape[-3]) if self.keyframed else 1
+
+    def keyframe(self, k: int) -> Instances:
+        """The instances under keyframe ``k``'s transforms (no validation)."""
+        children, _ = self.tree_flatten()
+        transform = self.transform[..., k, :, :] if self.keyframed else self.transform
+        return Instances.tree_unflatten((False,), (children[0], transform, *children[2:]))
 
     def tree_flatten(self):
-        return (self.structure_index, self.transform, self.mask, self.user_id, self.options), None
+        return (self.structure_index, self.transform, self.mask, self.user_id, self.options), (self.keyframed,)
 
     @classmethod
     def tree_unflatten(cls, aux, children):
         obj = object.__new__(cls)
         obj.structure_index, obj.transform, obj.mask, obj.user_id, obj.options = children
+        (obj.keyframed,) = aux
         return obj
 
     def __repr__(self) -> str:
@@ -307,6 +332,8 @@ class InstanceTable:
     user_id: jax.Array
     options: jax.Array
     count: jax.Array
+    motion_transform: jax.Array | None = None  # (N, K, 3, 4) object-to-world keyframes (instance motion only)
+    motion: MotionSpec | None = dataclasses.field(default=None, metadata=dict(static=True))
 
     @property
     def capacity(self) -> int:
@@ -400,6 +427,11 @@ class InstanceAccelerationStructure:
         return _levels_of(len(self.primitive_structures), self.children)[-1]
 
     @property
+    def has_instance_motion(self) -> bool:
+        """Whether some instance table below (or at) this structure has keyframed transforms."""
+        return any(t.motion is not None for t in self.instance_tables)
+
+    @property
     def instance_count(self) -> jax.Array:
         """The number of instances that exist (the ``count`` of the build; may be traced)."""
         return self.root.count
@@ -466,15 +498,28 @@ def _build_table(
     user_id: jax.Array,
     options: jax.Array,
     count: jax.Array,
+    motion: MotionSpec | None = None,
 ) -> InstanceTable:
-    """The LBVH over instance boxes (same steps as the primitive build: Morton codes, sort, radix tree)."""
+    """The LBVH over instance boxes (same steps as the primitive build: Morton codes, sort, radix tree).
+
+    With keyframed transforms ``(N, K, 3, 4)`` an instance's box is the union of its child's box under every
+    keyframe transform. A component-wise blend maps each child point to a convex combination of its images
+    under two keyframes, so the union bounds the instance at every time (conservatively: it also covers the
+    space between keyframes that a rotation sweeps around rather than through).
+    """
     n = transform.shape[0]
     capacity = capacity_bucket(n)
     structures = child_lower.shape[0]
     in_range = (structure_index >= 0) & (structure_index < structures)
     exists = (jnp.arange(n) < count) & in_range
     index = jnp.clip(structure_index, 0, structures - 1)
-    lower, upper = _transform_boxes(lax.stop_gradient(transform), child_lower[index], child_upper[index])
+    keys = transform if transform.ndim == 4 else transform[:, None]
+    boxes = [
+        _transform_boxes(lax.stop_gradient(keys[:, k]), child_lower[index], child_upper[index])
+        for k in range(keys.shape[1])
+    ]
+    lower = functools.reduce(jnp.minimum, [b[0] for b in boxes])
+    upper = functools.reduce(jnp.maximum, [b[1] for b in boxes])
     lower = jnp.where(exists[:, None], lower, jnp.inf)
     upper = jnp.where(exists[:, None], upper, -jnp.inf)
     valid = jnp.pad(exists & jnp.all(lower <= upper, axis=-1), (0, capacity - n))
@@ -495,16 +540,33 @@ def _build_table(
         node_range=node_range,
         leaf_instance=jnp.where(order < n, order, -1).astype(jnp.int32),
         structure_index=structure_index,
-        transform=transform,
-        world_to_object=invert_transform(transform),
+        transform=keys[:, 0],
+        world_to_object=invert_transform(keys[:, 0]),
         mask=mask,
         user_id=user_id,
         options=options,
         count=count,
+        motion_transform=transform if transform.ndim == 4 else None,
+        motion=motion if transform.ndim == 4 else None,
     )
 
 
-_build_table_jit = jax.jit(_build_table)
+_build_table_jit = jax.jit(_build_table, static_argnums=(8,))
+
+
+def _check_motion(instances: Instances, motion: Any, owner: str) -> None:
+    """Keyframed transforms need a :class:`MotionSpec` and a spec needs keyframed transforms."""
+    if motion is not None and not isinstance(motion, MotionSpec):
+        raise TypeError(f"{owner}: motion must be an rt.MotionSpec or None, got {motion!r}")
+    if instances.keyframe_count > 1 and motion is None:
+        raise ValueError(
+            f"{owner}: instances.transform {tuple(instances.transform.shape)} is keyframed (instance motion); pass "
+            "motion=rt.MotionSpec(start_time, end_time, ...)"
+        )
+    if instances.keyframe_count == 1 and motion is not None:
+        raise ValueError(
+            f"{owner}: motion={motion} needs keyframed transforms (N, K, 3, 4), got {tuple(instances.transform.shape)}"
+        )
 
 
 def _count(count: Any, n: int) -> jax.Array:
@@ -571,7 +633,9 @@ def build_instance_structure(
       count: how many of the instances exist (Metal's indirect instance count): instances ``>= count`` are
         skipped. A Python int or a (possibly traced) int32 scalar; changing only its value does not recompile.
         ``None`` means all.
-      motion: keyframe motion; not supported yet (must be ``None``).
+      motion: the time range and border modes (an :class:`~jaxrt.MotionSpec`) of keyframed transforms
+        ``(N, K, 3, 4)`` (required with them, refused without them). A static instance of a moving table
+        repeats one transform over its keyframes. Moving and static tables mix at any level.
       checks: also check traced inputs (non-finite or singular transforms and structure indices out of range
         among the ``count`` existing instances), which are checked only when concrete otherwise: a
         :class:`~jaxrt._src.checks.BuildCheckError` (inside ``jit``, a ``jax.errors.JaxRuntimeError``
@@ -596,8 +660,6 @@ def build_instance_structure(
       (1.0, [0])
     """
     owner = "build_instance_structure"
-    if motion is not None:
-        raise NotImplementedError(f"{owner}: motion (instance motion) is not supported yet")
     if isinstance(structures, PrimitiveAccelerationStructure | InstanceAccelerationStructure):
         structures = (structures,)
     if not isinstance(structures, Sequence) or isinstance(structures, str):
@@ -619,12 +681,14 @@ def build_instance_structure(
                 f"{owner}: instances.structure_index[{i}] = {int(host[i])} is out of range for "
                 f"{len(structures)} structures"
             )
+    _check_motion(instances, motion, owner)
     n = instances.count
     count = _count(count, n)
     if checks:
         from jaxrt._src.checks import check_instances
 
-        check_instances(instances, len(structures), count, SINGULAR_TOLERANCE, owner)
+        for k in range(instances.keyframe_count):
+            check_instances(instances.keyframe(k), len(structures), count, SINGULAR_TOLERANCE, owner)
 
     merger = _Merger()
     refs = tuple(merger.add(s) for s in structures)
@@ -641,6 +705,7 @@ def build_instance_structure(
         instances.user_id,
         instances.options,
         count,
+        motion,
     )
     children = tuple(tuple(resolve(r) for r in t) for t in merger.table_children) + (tuple(resolve(r) for r in refs),)
     return InstanceAccelerationStructure(
@@ -683,6 +748,7 @@ def refit_instances(structure: InstanceAccelerationStructure, instances: Instanc
         host = np.asarray(instances.structure_index)
         if ((host < 0) | (host >= len(refs))).any():
             raise ValueError(f"{owner}: instances.structure_index is out of range for {len(refs)} structures")
+    _check_motion(instances, structure.root.motion, owner)
     table = _build_table_jit(
         *_child_boxes([components[c] for c in refs]),
         instances.structure_index,
@@ -691,6 +757,7 @@ def refit_instances(structure: InstanceAccelerationStructure, instances: Instanc
         instances.user_id,
         instances.options,
         structure.root.count if count is None else _count(count, instances.count),
+        structure.root.motion,
     )
     return dataclasses.replace(structure, instance_tables=(*structure.instance_tables[:-1], table))
 
@@ -725,6 +792,57 @@ class SceneArrays(NamedTuple):
     options: jax.Array  # (G,) uint32
     leaf_curve: jax.Array | None = None  # (LT, 6, 4) packed object-space segments, or None without curves
     leaf_curve_flags: jax.Array | None = None  # (LT,) int32
+    motion: InstanceMotion | None = None  # keyframed transforms, with instance motion only
+
+
+class InstanceMotion(NamedTuple):
+    """Keyframed object-to-world transforms of every global instance (static instances repeat theirs)."""
+
+    keys: jax.Array  # (G, K, 3, 4), K the largest keyframe count; shorter tables repeat their last keyframe
+    count: jax.Array  # (G,) int32 keyframes of the instance's table (2 for static tables)
+    start: jax.Array  # (G,) float
+    end: jax.Array  # (G,) float
+    vanish_start: jax.Array  # (G,) bool
+    vanish_end: jax.Array  # (G,) bool
+    moving: jax.Array  # (G,) bool: the instance's table has motion
+
+
+def instance_motion_at(motion: InstanceMotion, g: jax.Array, time: jax.Array):
+    """``(to_world, to_object, visible, moving)`` of global instances ``g`` at ``time`` (broadcast together):
+    the component-wise blend of the two neighbouring keyframe transforms, its inverse, whether the instance
+    exists at that time (a ``"vanish"`` border), and whether it moves at all."""
+    from jaxrt._src.motion import blend, keyframe_position
+
+    position = keyframe_position(
+        time, motion.count[g], motion.start[g], motion.end[g], motion.vanish_start[g], motion.vanish_end[g]
+    )
+    a = motion.keys[g, position.index]
+    b = motion.keys[g, position.index + 1]
+    w = position.weight[..., None, None]
+    to_world = blend(a, b, w)
+    return to_world, invert_transform(to_world), position.visible | ~motion.moving[g], motion.moving[g]
+
+
+def _instance_motion(tables: tuple[InstanceTable, ...]) -> InstanceMotion | None:
+    """The keyframed transforms of every table's instances, concatenated (``None`` without instance motion)."""
+    if all(t.motion is None for t in tables):
+        return None
+    k = max(t.motion_transform.shape[1] for t in tables if t.motion is not None)
+    keys, count, start, end, vanish_start, vanish_end, moving = [], [], [], [], [], [], []
+    for t in tables:
+        n = t.instance_slots
+        own = t.motion_transform if t.motion is not None else jnp.stack([t.transform, t.transform], axis=1)
+        last = own[:, -1:]
+        keys.append(jnp.concatenate([own] + [last] * (k - own.shape[1]), axis=1))
+        spec = t.motion or MotionSpec()
+        count.append(jnp.full((n,), own.shape[1], jnp.int32))
+        start.append(jnp.full((n,), spec.start_time, own.dtype))
+        end.append(jnp.full((n,), spec.end_time, own.dtype))
+        vanish_start.append(jnp.full((n,), spec.start_border == "vanish"))
+        vanish_end.append(jnp.full((n,), spec.end_border == "vanish"))
+        moving.append(jnp.full((n,), t.motion is not None))
+    cat = jnp.concatenate
+    return InstanceMotion(cat(keys), cat(count), cat(start), cat(end), cat(vanish_start), cat(vanish_end), cat(moving))
 
 
 def _leaf_curves(prims: tuple[PrimitiveAccelerationStructure, ...]) -> tuple[jax.Array | None, jax.Array | None]:
@@ -794,6 +912,7 @@ def scene_arrays(structure: InstanceAccelerationStructure) -> SceneArrays:
         options=options,
         leaf_curve=leaf_curve,
         leaf_curve_flags=leaf_curve_flags,
+        motion=_instance_motion(tables),
     )
 
 

@@ -33,6 +33,8 @@ _SUPPORTED_TAGS = frozenset(
         "user_instance_id",
         "primitive_data",
         "normal",
+        "primitive_motion",
+        "instance_motion",
     ]
 )
 #: Geometry kinds ``geometry_types`` may name (strings or ``rt.IntersectionType`` members).
@@ -238,6 +240,7 @@ class Intersector:
                 f"Intersector.intersect: structure must be an acceleration structure, got {type(structure).__name__}"
             )
         _check_levels(self, structure)
+        _check_motion(self, structure)
         _check_geometry(self, structure)
         pipeline.resolve_backend(self)  # raises early, outside jit, when the GPU backend is forced but unavailable
         return pipeline.intersect(self, rays, structure)
@@ -290,7 +293,7 @@ def count_intersections(
     if base.max_hits is not None or base.accept_any_intersection:
         raise ValueError("count_intersections: the intersector must not set max_hits or accept_any_intersection")
     counting = _CountingIntersector(
-        *(t for t in base.tags if t.name in ("instancing", "max_levels")),
+        *(t for t in base.tags if t.name in ("instancing", "max_levels", "primitive_motion", "instance_motion")),
         accept_any_intersection=False,
         triangle_cull_mode=base.triangle_cull_mode,
         front_facing_winding=base.front_facing_winding,
@@ -350,6 +353,20 @@ def _check_levels(intersector: Intersector, structure: Any) -> None:
         f"Intersector.intersect: the structure is nested {depth} instance levels deep, deeper than the "
         f"intersector's tags.max_levels({handled}); use tags.max_levels({depth})"
     )
+
+
+def _check_motion(intersector: Intersector, structure: Any) -> None:
+    """A structure with keyframe motion needs the motion tag of its kind (Metal's intersector tags)."""
+    if any(s.motion is not None for s in primitive_structures(structure)) and not intersector.has("primitive_motion"):
+        raise ValueError(
+            "Intersector.intersect: the structure has primitive keyframe motion (a structure built with motion=); "
+            "add tags.primitive_motion to the Intersector"
+        )
+    if getattr(structure, "has_instance_motion", False) and not intersector.has("instance_motion"):
+        raise ValueError(
+            "Intersector.intersect: the structure has instance keyframe motion ((N, K, 3, 4) transforms); add "
+            "tags.instance_motion to the Intersector"
+        )
 
 
 def _check_geometry(intersector: Intersector, structure: Any) -> None:

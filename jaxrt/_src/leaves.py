@@ -33,6 +33,7 @@ __all__ = [
     "BoxLeaves",
     "FilteredTriangleLeaves",
     "KindSwitch",
+    "MotionLeaves",
     "TriangleLeaves",
     "box_candidate",
     "box_slots",
@@ -136,11 +137,12 @@ def function_ray(origin: jax.Array, direction: jax.Array, t_min: jax.Array, t_ma
     return Ray(origin, direction, t_min, t_max)
 
 
-def box_candidate(view: SceneView, leaf: jax.Array, data: Any = None) -> BoundingBoxCandidate:
-    """The candidate of box leaf ``leaf`` (one leaf); ``data`` the per-leaf primitive data to read."""
+def box_candidate(view: SceneView, leaf: jax.Array, data: Any = None, box: Any = None) -> BoundingBoxCandidate:
+    """The candidate of box leaf ``leaf`` (one leaf); ``data`` the per-leaf primitive data to read, ``box``
+    the ``(2, 3)`` box where it is not the view's (a moving box blended at the ray's time)."""
     k = jnp.maximum(leaf, 0)
     leaves = view.leaves
-    box = leaves.box[k]
+    box = leaves.box[k] if box is None else box
     data = leaves.primitive_data if data is None else data
     return BoundingBoxCandidate(leaves.primitive[k], leaves.geometry[k], box[0], box[1], data_at(data, k))
 
@@ -212,12 +214,42 @@ def curve_configuration(intersector: Any, view: SceneView) -> dict:
     return curve_support.curve_configuration(infos, intersector.curve_type, intersector.curve_options)
 
 
+class MotionLeaves:
+    """Leaf tests of a scene with primitive motion: the static tests run on the leaves blended at each ray's
+    time (:meth:`~jaxrt._src.scene_view.SceneView.at`), and moving leaves vanish outside the motion range
+    on a ``"vanish"`` border. ``prepare`` takes the ray's time (``reads_time``)."""
+
+    reads_time = True
+
+    def __init__(self, view: SceneView, make: Callable[[SceneView], Any]):
+        self.view = view
+        self.make = make
+        self.static = make(view)
+        self.moving = view.slot_table(view.slots_where(lambda g: g.motion))
+
+    def prepare(self, origin, direction, facing, time=None):
+        return self.static.prepare(origin, direction, facing), self.view.keyframe_position(time)
+
+    def __call__(self, context, leaves, t_min, t_max):
+        inner, position = context
+        hit, distance = self.make(self.view.at(position))(inner, leaves, t_min, t_max)
+        vanished = ~position.visible & self.view.leaf_flag(self.moving, leaves)
+        return hit & ~vanished, distance
+
+
 def leaf_tester(intersector: Any, view: SceneView, *, user_code: bool = True) -> Any:
-    """The leaf tests the scene's kinds need: triangles (filtered where non-opaque), curves, boxes.
+    """The leaf tests the scene's kinds need: triangles (filtered where non-opaque), curves, boxes; with
+    primitive motion, on the leaves blended at each ray's time (:class:`MotionLeaves`).
 
     Without ``user_code`` neither the filter nor intersection functions are called: box leaves never hit and
     non-opaque triangles are tested as opaque ones (an intersection query decides them itself).
     """
+    if view.leaves.motion is not None:
+        return MotionLeaves(view, lambda v: _static_tester(intersector, v, user_code))
+    return _static_tester(intersector, view, user_code)
+
+
+def _static_tester(intersector: Any, view: SceneView, user_code: bool) -> Any:
     from jaxrt._src import curves as curve_support
 
     detached = lax.stop_gradient

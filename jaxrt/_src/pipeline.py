@@ -78,6 +78,7 @@ class SanitizedRays:
         self.t_min = jnp.where(on, rays.min_distance, 0.0)
         self.t_max = jnp.where(on, rays.max_distance, 0.0)
         self.mask = rays.mask
+        self.time = jnp.where(on, rays.time, 0.0)  # read only by scenes with keyframe motion
 
 
 def kernel_declines(intersector: Any, geometry_info: tuple) -> str | None:
@@ -95,6 +96,8 @@ def kernel_declines(intersector: Any, geometry_info: tuple) -> str | None:
         return "filters on non-opaque geometry are not covered by the GPU kernel"
     if intersector.max_hits is not None or intersector.counts_all:
         return "multi-hit (max_hits) and counting are not covered by the GPU kernel"
+    if any(g.motion for g in geometry_info):
+        return "keyframe motion is not covered by the GPU kernel"
     return None
 
 
@@ -144,12 +147,15 @@ def _trace_portable(intersector: Any, view: SceneView, rays: SanitizedRays) -> T
         rays.enabled,
         rays.mask,
     )
+    if view.layout.motion:  # keyframe motion: the traversal reads each ray's time
+        args += (detached(rays.time),)
     return _chunked(fn, args, chunk)
 
 
 def trace(intersector: Any, view: SceneView, rays: SanitizedRays) -> TraversalResult:
     """Run the traversal the intersector and scene call for (the GPU kernel where it covers them)."""
-    if resolve_backend(intersector) == "gpu" and kernel_declines(intersector, view.geometry_info) is None:
+    covered = kernel_declines(intersector, view.geometry_info) is None and not view.layout.motion
+    if resolve_backend(intersector) == "gpu" and covered:
         from jaxrt._src.traversal import gpu
 
         detached = lax.stop_gradient
@@ -175,8 +181,11 @@ def _intersect_jit(intersector: Any, rays: Ray, structure: Any) -> IntersectionR
     if intersector.counts_all:
         return IntersectionResult({"hit_count": found.hits.total})
     geometry = (ray.origin, ray.direction, ray.t_min, ray.t_max)
+    moving = view.layout.motion
     if intersector.max_hits is None:
-        fields = result_fields.hit_fields(intersector, view, *geometry, found.leaf, found.distance, found.instances)
+        fields = result_fields.hit_fields(
+            intersector, view, *geometry, found.leaf, found.distance, found.instances, time=ray.time if moving else None
+        )
     else:  # the same fields for each of the K hits, on an axis after the ray axis
         k = intersector.max_hits
         hits = found.hits
@@ -188,10 +197,14 @@ def _intersect_jit(intersector: Any, rays: Ray, structure: Any) -> IntersectionR
             hits.leaf.reshape(-1),
             hits.distance.reshape(-1),
             chains.reshape(hits.leaf.size, chains.shape[-1]),
+            time=jnp.repeat(ray.time, k, axis=0) if moving else None,
         )
         fields = jax.tree_util.tree_map(lambda a: a.reshape(-1, k, *a.shape[1:]), flat)
         fields["hit_count"] = jnp.minimum(hits.total, k)
         fields["hit_overflow"] = hits.total > k
+    if intersector.has("primitive_motion") or intersector.has("instance_motion"):
+        hit = fields["type"] != 0
+        fields["time"] = jnp.where(hit, rays.time[:, None] if hit.ndim > 1 else rays.time, 0.0)
     if intersector.has("stats"):
         fields["nodes_visited"] = found.nodes_visited
         fields["primitives_tested"] = found.primitives_tested

@@ -39,7 +39,7 @@ from jaxrt._src.primitives import triangle
 from jaxrt._src.primitives.box import ray_box
 from jaxrt._src.ray import Ray
 from jaxrt._src.result import IntersectionType
-from jaxrt._src.scene_view import SceneView, scene_view
+from jaxrt._src.scene_view import SceneView, primitive_structures, scene_view
 from jaxrt._src.structures import PrimitiveAccelerationStructure
 from jaxrt._src.traversal.step import RayConstants, State, select_level, start, step
 
@@ -355,6 +355,12 @@ def intersection_query(rays: Ray, structure: PrimitiveAccelerationStructure, int
             f"intersection_query: structure must be an acceleration structure, got {type(structure).__name__}"
         )
     _check_levels(intersector, structure)
+    moving = isinstance(structure, InstanceAccelerationStructure) and structure.has_instance_motion
+    if moving or any(s.motion is not None for s in primitive_structures(structure)):
+        raise NotImplementedError(
+            "intersection_query: structures with keyframe motion are traced with Intersector.intersect; the "
+            "query does not blend keyframes at the ray's time"
+        )
     ray = SanitizedRays(rays)
     origin, direction = ray.origin, ray.direction
     view = scene_view(structure)

@@ -21,10 +21,19 @@ import numpy as np
 
 from jaxrt._src.bvh.boxes import empty_box
 from jaxrt._src.instances import InstanceAccelerationStructure, primitive_leaf_count, scene_arrays, scene_root
+from jaxrt._src.motion import KeyframePosition, LeafKeys, MotionSpec, spec_position
 from jaxrt._src.structures import GeometryInfo, PrimitiveAccelerationStructure
 from jaxrt._src.traversal.scene import TraversalLayout, TraversalScene
 
-__all__ = ["InstanceArrays", "LeafArrays", "SceneView", "primitive_structures", "scene_view", "traversal_scene"]
+__all__ = [
+    "InstanceArrays",
+    "LeafArrays",
+    "LeafMotion",
+    "SceneView",
+    "primitive_structures",
+    "scene_view",
+    "traversal_scene",
+]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -39,6 +48,22 @@ class LeafArrays:
     curve_flags: jax.Array | None = None  # (P,) int32
     box: jax.Array | None = None  # (P, 2, 3), with bounding-box geometry only
     primitive_data: Any = None  # pytree of (P, ...) leaves, with primitive data only
+    motion: LeafMotion | None = None  # keyframes of moving primitives, with primitive motion only
+
+
+@dataclasses.dataclass(frozen=True)
+class LeafMotion:
+    """The leaf arrays per keyframe ``(K, P, ...)`` of a scene with primitive motion (one spec for the scene;
+    leaves of static structures repeat their rows)."""
+
+    spec: MotionSpec
+    triangle: jax.Array  # (K, P, 3, 3)
+    curve: jax.Array | None = None  # (K, P, 6, 4)
+    box: jax.Array | None = None  # (K, P, 2, 3)
+
+    @property
+    def keyframe_count(self) -> int:
+        return int(self.triangle.shape[0])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -51,6 +76,7 @@ class InstanceArrays:
     local_index: jax.Array  # (G,) index of the instance within its structure
     user_id: jax.Array  # (G,) uint32
     options: jax.Array  # (G,) uint32 InstanceOptions bits
+    motion: Any = None  # keyframed transforms (:class:`~jaxrt._src.instances.InstanceMotion`), or None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -87,6 +113,23 @@ class SceneView:
         """``table``'s entry for the geometry slot of each leaf (padding leaves read the padding row)."""
         slot = self.leaves.slot[jnp.maximum(leaves, 0)]
         return table[jnp.where(slot < 0, table.shape[0] - 1, slot)]
+
+    def keyframe_position(self, time: jax.Array) -> KeyframePosition:
+        """Where ``time`` falls among the keyframes of the scene's primitive motion."""
+        motion = self.leaves.motion
+        return spec_position(motion.spec, motion.keyframe_count, time)
+
+    def at(self, position: KeyframePosition) -> SceneView:
+        """The view whose leaf triangles, curves and boxes are the keyframes blended at ``position``
+        (:class:`~jaxrt._src.motion.LeafKeys`, indexed like the static arrays); ``self`` without motion."""
+        motion = self.leaves.motion
+        if motion is None:
+            return self
+        keys = lambda a: None if a is None else LeafKeys(a, position)  # noqa: E731
+        leaves = dataclasses.replace(
+            self.leaves, triangle=keys(motion.triangle), curve=keys(motion.curve), box=keys(motion.box)
+        )
+        return dataclasses.replace(self, leaves=leaves)
 
 
 def primitive_structures(structure: Any) -> tuple[PrimitiveAccelerationStructure, ...]:
@@ -129,6 +172,43 @@ def _leaf_boxes(prims: tuple[PrimitiveAccelerationStructure, ...]) -> jax.Array 
     return jnp.concatenate(parts)
 
 
+def _leaf_motion(prims: tuple[PrimitiveAccelerationStructure, ...]) -> LeafMotion | None:
+    """The keyframe leaf arrays of every structure, concatenated (``None`` when no structure moves)."""
+    moving = [s for s in prims if s.motion is not None]
+    if not moving:
+        return None
+    specs = {s.motion for s in moving}
+    counts = {s.keyframe_count for s in moving}
+    if len(specs) > 1 or len(counts) > 1:
+        raise ValueError(
+            "Intersector.intersect: the primitive structures with motion below the instance structure have "
+            f"different motion specs {sorted(map(str, specs))} or keyframe counts {sorted(counts)}; one scene "
+            "takes one spec and keyframe count for its primitive motion"
+        )
+    k = counts.pop()
+
+    def stacked(name: str, keyed: str, empty) -> jax.Array | None:
+        if all(getattr(s, name) is None for s in prims):
+            return None
+        parts = []
+        for s in prims:
+            if getattr(s, keyed) is not None:
+                parts.append(getattr(s, keyed))
+            else:
+                static = getattr(s, name)
+                static = empty(s) if static is None else static
+                parts.append(jnp.broadcast_to(static, (k, *static.shape)))
+        return jnp.concatenate(parts, axis=1)
+
+    dtype = moving[0].leaf_triangle.dtype
+    return LeafMotion(
+        spec=specs.pop(),
+        triangle=stacked("leaf_triangle", "motion_triangle", None),
+        curve=stacked("leaf_curve", "motion_curve", lambda s: jnp.zeros((s.capacity, 6, 4), dtype)),
+        box=stacked("leaf_box", "motion_box", lambda s: jnp.stack(empty_box(s.capacity, dtype), axis=1)),
+    )
+
+
 def _slots(prims: tuple[PrimitiveAccelerationStructure, ...]) -> jax.Array:
     offsets = np.concatenate([[0], np.cumsum([len(s.geometry_info) for s in prims])])
     return jnp.concatenate(
@@ -149,6 +229,7 @@ def scene_view(structure: PrimitiveAccelerationStructure | InstanceAccelerationS
             curve_flags=structure.leaf_curve_flags,
             box=structure.leaf_box,
             primitive_data=structure.leaf_primitive_data,
+            motion=_leaf_motion((structure,)),
         )
         return SceneView(traversal, layout, leaves, structure.geometry_info)
     prims = primitive_structures(structure)
@@ -163,6 +244,7 @@ def scene_view(structure: PrimitiveAccelerationStructure | InstanceAccelerationS
         curve_flags=scene.leaf_curve_flags,
         box=_leaf_boxes(prims),
         primitive_data=_concatenate_data(prims),
+        motion=_leaf_motion(prims),
     )
     instances = InstanceArrays(
         transform=scene.transform,
@@ -171,6 +253,7 @@ def scene_view(structure: PrimitiveAccelerationStructure | InstanceAccelerationS
         local_index=scene.local_index,
         user_id=scene.user_id,
         options=scene.options,
+        motion=scene.motion,
     )
     infos = tuple(g for s in prims for g in s.geometry_info)
     return SceneView(traversal, layout, leaves, infos, instances)
@@ -188,8 +271,18 @@ def _primitive_traversal(structure: PrimitiveAccelerationStructure) -> tuple[Tra
         instance_facing=jnp.zeros((0,), jnp.int32),
         instance_mask=jnp.zeros((0,), jnp.uint32),
         node_range=structure.node_range,
+        node_motion=None
+        if structure.motion_node_lower is None
+        else (structure.motion_node_lower, structure.motion_node_upper),
     )
-    layout = TraversalLayout(root=0, primitive_leaves=structure.capacity, levels=0, stack_size=structure.max_depth)
+    layout = TraversalLayout(
+        root=0,
+        primitive_leaves=structure.capacity,
+        levels=0,
+        stack_size=structure.max_depth,
+        motion=structure.motion is not None,
+        node_spec=structure.motion if structure.motion_node_lower is not None else None,
+    )
     return view, layout
 
 
@@ -203,12 +296,14 @@ def _instanced_traversal(structure: InstanceAccelerationStructure, scene) -> tup
         instance_child_root=scene.child_root,
         instance_facing=(scene.flip * scene.cull).astype(jnp.int32),
         instance_mask=scene.mask,
+        instance_motion=scene.motion,
     )
     layout = TraversalLayout(
         root=scene_root(structure),
         primitive_leaves=primitive_leaf_count(structure),
         levels=structure.levels,
         stack_size=structure.max_depth,
+        motion=any(s.motion is not None for s in structure.primitive_structures) or structure.has_instance_motion,
     )
     return view, layout
 

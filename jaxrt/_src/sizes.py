@@ -68,6 +68,7 @@ def structure_sizes(
     capacity: int | None = None,
     quality: str = "fast",
     count: Any = None,
+    motion: Any = None,
 ) -> StructureSizes:
     """Bytes of every array of the structure that a build would allocate, without building it.
 
@@ -79,6 +80,7 @@ def structure_sizes(
         abstract (the result of ``jax.eval_shape`` of a build).
       capacity, quality: as for :func:`~jaxrt.build_primitive_structure`.
       count: as for :func:`~jaxrt.build_instance_structure`.
+      motion: the :class:`~jaxrt.MotionSpec` of keyframed geometries or instances (as for the builds).
 
     Returns:
       A :class:`StructureSizes`; ``.total`` is the sum. For an instance structure it includes the structures
@@ -107,11 +109,15 @@ def structure_sizes(
         structures = tuple(structures)
         if any(isinstance(a, jax.ShapeDtypeStruct) for a in jax.tree_util.tree_leaves(structures)):
             # Abstract structures are traced as arguments (each reference then counts as a distinct one).
-            abstract = jax.eval_shape(lambda i, s: build_instance_structure(s, i, count=count), x, structures)
+            abstract = jax.eval_shape(
+                lambda i, s: build_instance_structure(s, i, count=count, motion=motion), x, structures
+            )
         else:  # closed over, so that structures shared by identity are stored (and counted) once
-            abstract = jax.eval_shape(lambda i: build_instance_structure(structures, i, count=count), x)
+            abstract = jax.eval_shape(lambda i: build_instance_structure(structures, i, count=count, motion=motion), x)
         return array_bytes(abstract)
     if structures is not None:
         raise ValueError(f"{_OWNER}: structures is only for Instances, got geometries {type(x).__name__}")
-    abstract = jax.eval_shape(lambda g: build_primitive_structure(g, capacity=capacity, quality=quality), x)
+    abstract = jax.eval_shape(
+        lambda g: build_primitive_structure(g, capacity=capacity, quality=quality, motion=motion), x
+    )
     return array_bytes(abstract)

@@ -26,7 +26,22 @@ array               shape, dtype    contents
 ``leaf_primitive_data`` pytree      with primitive data only (else ``None``): every geometry's
                                     ``primitive_data`` in leaf order, leaves of shape ``(C, ...)``; rows of
                                     geometries without data and of padding are zeros
+``motion_triangle`` (K, C, 3, 3) f  with keyframe motion only (else ``None``, like the two below):
+                                    ``leaf_triangle`` at each of the ``K`` keyframes (``leaf_triangle`` is
+                                    keyframe 0); static geometries repeat their rows
+``motion_curve``    (K, C, 6, 4) f  with motion and curves: ``leaf_curve`` per keyframe (the packing is
+                                    linear in the control points, so blending packed keyframes packs the
+                                    blended curve)
+``motion_box``      (K, C, 2, 3) f  with motion and bounding boxes: ``leaf_box`` per keyframe
+``motion_node_lower`` (K, C-1, 2, 3) with motion: the child boxes of every node at each keyframe (and
+``motion_node_upper``               its upper corners); blended at a ray's time they bound the subtree then
 ==================  ==============  ================================================================
+
+With keyframe motion (static ``motion``, a :class:`~jaxrt.MotionSpec`) ``node_lower``/``node_upper`` bound
+each primitive over every keyframe (the union of its keyframe boxes; instance boxes and the SAH cost read
+them), ``motion_node_lower``/``motion_node_upper`` hold the node boxes of each keyframe, which the traversal
+blends at each ray's time ("linear bounds", as Embree's motion-blur BVHs interpolate node bounds), and the
+leaf tests blend the keyframe rows (:mod:`jaxrt._src.motion`).
 
 The kind of a leaf (triangle, curve, bounding box) and whether it is opaque follow from its geometry index
 and the static :class:`GeometryInfo` of that geometry. Internal node 0 is the root. Every leaf holds one
@@ -51,8 +66,9 @@ from jaxrt._src.bvh.boxes import child_boxes, range_boxes
 from jaxrt._src.bvh.morton import morton_codes
 from jaxrt._src.bvh.ploc import restructure
 from jaxrt._src.bvh.radix_tree import build_radix_tree, tree_depth_bound
-from jaxrt._src.curves import CurveGeometry, CurveInfo, curve_leaves
-from jaxrt._src.geometry import BoundingBoxGeometry, TriangleGeometry
+from jaxrt._src.curves import CurveGeometry, CurveInfo, MotionCurveGeometry, curve_leaves
+from jaxrt._src.geometry import BoundingBoxGeometry, MotionBoundingBoxGeometry, MotionTriangleGeometry, TriangleGeometry
+from jaxrt._src.motion import MotionSpec, motion_bounds
 from jaxrt._src.numerics import full_precision
 from jaxrt._src.primitive_data import gather_leaf_data, primitive_data_layout
 from jaxrt._src.primitives import triangle
@@ -67,6 +83,7 @@ class GeometryInfo:
     kind: str
     opaque: bool
     curve: CurveInfo | None = None  # basis, control point count, type and end caps of a curve geometry
+    motion: bool = False  # a keyframed (Motion*) geometry
 
 
 @jax.tree_util.register_dataclass
@@ -91,6 +108,17 @@ class PrimitiveAccelerationStructure:
     leaf_curve_flags: jax.Array | None = None
     leaf_box: jax.Array | None = None
     leaf_primitive_data: Any = None
+    motion_triangle: jax.Array | None = None
+    motion_curve: jax.Array | None = None
+    motion_box: jax.Array | None = None
+    motion_node_lower: jax.Array | None = None
+    motion_node_upper: jax.Array | None = None
+    motion: MotionSpec | None = dataclasses.field(default=None, metadata=dict(static=True))
+
+    @property
+    def keyframe_count(self) -> int:
+        """Keyframes of the structure's primitive motion (1 for a static structure)."""
+        return 1 if self.motion_triangle is None else int(self.motion_triangle.shape[0])
 
     @property
     def capacity(self) -> int:
@@ -122,11 +150,44 @@ def capacity_bucket(count: int, capacity: int | None = None) -> int:
     return max(2, 1 << (max(count, 1) - 1).bit_length())
 
 
-_GEOMETRY_CLASSES = (TriangleGeometry, CurveGeometry, BoundingBoxGeometry)
+_MOTION_CLASSES = (MotionTriangleGeometry, MotionCurveGeometry, MotionBoundingBoxGeometry)
+_GEOMETRY_CLASSES = (TriangleGeometry, CurveGeometry, BoundingBoxGeometry, *_MOTION_CLASSES)
 
 
-def _geometry_info(g: TriangleGeometry | CurveGeometry | BoundingBoxGeometry) -> GeometryInfo:
-    return GeometryInfo(g.kind, g.opaque, g.info if isinstance(g, CurveGeometry) else None)
+def _geometry_info(g: Any) -> GeometryInfo:
+    curve = g.info if isinstance(g, CurveGeometry | MotionCurveGeometry) else None
+    return GeometryInfo(g.kind, g.opaque, curve, isinstance(g, _MOTION_CLASSES))
+
+
+def _keyframe_count(geometries: tuple, motion: Any, owner: str) -> int:
+    """The common keyframe count of the motion geometries (1 without any), checked against ``motion``."""
+    counts = {i: g.keyframe_count for i, g in enumerate(geometries) if isinstance(g, _MOTION_CLASSES)}
+    if motion is not None and not isinstance(motion, MotionSpec):
+        raise TypeError(f"{owner}: motion must be an rt.MotionSpec or None, got {motion!r}")
+    if not counts:
+        if motion is not None:
+            raise ValueError(
+                f"{owner}: motion={motion} needs at least one Motion*Geometry (MotionTriangleGeometry, "
+                "MotionCurveGeometry, MotionBoundingBoxGeometry) among the geometries"
+            )
+        return 1
+    if motion is None:
+        first = next(iter(counts))
+        raise ValueError(
+            f"{owner}: geometries[{first}] is a {type(geometries[first]).__name__}; keyframe motion needs "
+            "motion=rt.MotionSpec(start_time, end_time, ...)"
+        )
+    if len(set(counts.values())) > 1:
+        raise ValueError(
+            f"{owner}: the motion geometries have different keyframe counts {counts} (geometry index: count); "
+            "every motion geometry of a structure needs the same count"
+        )
+    return next(iter(counts.values()))
+
+
+def _keyframes(geometries: tuple, count: int) -> list[tuple]:
+    """The static geometries of every keyframe (static geometries repeat)."""
+    return [tuple(g.keyframe(k) if isinstance(g, _MOTION_CLASSES) else g for g in geometries) for k in range(count)]
 
 
 def _as_geometry_tuple(geometries: Any) -> tuple[TriangleGeometry, ...]:
@@ -143,7 +204,8 @@ def _as_geometry_tuple(geometries: Any) -> tuple[TriangleGeometry, ...]:
         if not isinstance(geometry, _GEOMETRY_CLASSES):
             raise TypeError(
                 f"build_primitive_structure: geometries[{index}] is a {type(geometry).__name__}; "
-                "supported geometry types: TriangleGeometry, CurveGeometry, BoundingBoxGeometry"
+                "supported geometry types: TriangleGeometry, CurveGeometry, BoundingBoxGeometry and their Motion* "
+                "variants"
             )
     primitive_data_layout(geometries)  # one layout for all primitive data (a named error otherwise)
     return geometries
@@ -226,11 +288,8 @@ def _lbvh(codes: jax.Array, real: int) -> tuple[jax.Array, jax.Array, jax.Array]
     return children, node_range, jnp.concatenate([order, jnp.arange(real, capacity, dtype=jnp.int32)])
 
 
-@full_precision
-def _build(
-    geometries: tuple[TriangleGeometry, ...], capacity: int, quality: str = "fast"
-) -> PrimitiveAccelerationStructure:
-    triangles, geometry_id, primitive_id, lower, upper, valid, curves, boxes = _leaf_primitives(geometries, capacity)
+def _code_bounds(triangles, curves, boxes) -> tuple[jax.Array, jax.Array]:
+    """The boxes whose centroids give the Morton codes."""
     # Codes from the triangles' own boxes: a zero-area triangle's empty box has no centroid.
     bounds = lax.stop_gradient(triangles)
     code_lower, code_upper = jnp.min(bounds, axis=1), jnp.max(bounds, axis=1)
@@ -241,6 +300,21 @@ def _build(
         is_box = boxes[:, 0, 0] <= boxes[:, 1, 0]
         code_lower = jnp.where(is_box[:, None], lax.stop_gradient(boxes[:, 0]), code_lower)
         code_upper = jnp.where(is_box[:, None], lax.stop_gradient(boxes[:, 1]), code_upper)
+    return code_lower, code_upper
+
+
+@full_precision
+def _build(
+    geometries: tuple[TriangleGeometry, ...], capacity: int, quality: str = "fast", motion: MotionSpec | None = None
+) -> PrimitiveAccelerationStructure:
+    count_keys = _keyframe_count(geometries, motion, "build_primitive_structure")
+    frames = [_leaf_primitives(f, capacity) for f in _keyframes(geometries, count_keys)]
+    triangles, geometry_id, primitive_id, lower, upper, valid, curves, boxes = frames[0]
+    code_lower, code_upper = _code_bounds(triangles, curves, boxes)
+    if count_keys > 1:  # every box bounds its primitive at every keyframe (and so at every time)
+        lower, upper = motion_bounds(jnp.stack([f[3] for f in frames]), jnp.stack([f[4] for f in frames]))
+        codes = [_code_bounds(f[0], f[6], f[7]) for f in frames]
+        code_lower, code_upper = motion_bounds(jnp.stack([c[0] for c in codes]), jnp.stack([c[1] for c in codes]))
     count = sum(g.primitive_count for g in geometries)
     real = max(count, 2)  # leaves the LBVH links
     children, node_range, order = _lbvh(morton_codes(code_lower, code_upper, valid), real)
@@ -248,15 +322,27 @@ def _build(
         max_depth = tree_depth_bound(capacity)  # PrimitiveAccelerationStructure.max_depth
         children, node_range, position = restructure(lower[order], upper[order], count, children, node_range, max_depth)
         order = order[position]
-    leaf_lower, leaf_upper = lower[order], upper[order]
-    if quality == "high":
-        node_lower, node_upper = _node_boxes(children, node_range, leaf_lower, leaf_upper)
-    else:  # the unused rows past the tree over the real leaves stay empty
+
+    def boxes_of(lower, upper):
+        leaf_lower, leaf_upper = lower[order], upper[order]
+        if quality == "high":
+            return _node_boxes(children, node_range, leaf_lower, leaf_upper)
+        # the unused rows past the tree over the real leaves stay empty
         node_lower, node_upper = _node_boxes(
             children[: real - 1], node_range[: real - 1], leaf_lower[:real], leaf_upper[:real]
         )
         node_lower = jnp.pad(node_lower, ((0, capacity - real), (0, 0), (0, 0)), constant_values=jnp.inf)
         node_upper = jnp.pad(node_upper, ((0, capacity - real), (0, 0), (0, 0)), constant_values=-jnp.inf)
+        return node_lower, node_upper
+
+    node_lower, node_upper = boxes_of(lower, upper)
+    motion_nodes = {}
+    if count_keys > 1:  # the node boxes of every keyframe: blended at a ray's time they bound the blend
+        keyed = [boxes_of(*_keyframe_boxes(f)) for f in frames]
+        motion_nodes = dict(
+            motion_node_lower=lax.stop_gradient(jnp.stack([b[0] for b in keyed])),
+            motion_node_upper=lax.stop_gradient(jnp.stack([b[1] for b in keyed])),
+        )
     info = tuple(_geometry_info(g) for g in geometries)
     return PrimitiveAccelerationStructure(
         node_lower=lax.stop_gradient(node_lower),
@@ -272,10 +358,36 @@ def _build(
         leaf_curve_flags=None if curves is None else curves.flags[order],
         leaf_box=None if boxes is None else lax.stop_gradient(boxes[order]),
         leaf_primitive_data=gather_leaf_data(geometries, capacity, order),
+        **_motion_leaves(frames, order, motion),
+        **motion_nodes,
     )
 
 
-_build_jit = jax.jit(_build, static_argnums=(1, 2))
+def _keyframe_boxes(frame) -> tuple[jax.Array, jax.Array]:
+    """Leaf boxes of one keyframe in slot order, where a triangle without area keeps its (flat) box: a
+    triangle flat at one keyframe may have area between keyframes, and the blend needs finite corners."""
+    triangles, _, _, lower, upper, valid, _, _ = frame
+    flat = valid & jnp.any(lower > upper, axis=-1)
+    lower = jnp.where(flat[:, None], jnp.min(triangles, axis=1), lower)
+    upper = jnp.where(flat[:, None], jnp.max(triangles, axis=1), upper)
+    return lower, upper
+
+
+def _motion_leaves(frames: list, order: jax.Array, motion: MotionSpec | None) -> dict:
+    """The keyframe leaf arrays of a motion structure, in leaf order (nothing for a static one)."""
+    if len(frames) == 1:
+        return {}
+    curves = frames[0][6] is not None
+    boxes = frames[0][7] is not None
+    return dict(
+        motion_triangle=jnp.stack([f[0][order] for f in frames]),
+        motion_curve=jnp.stack([f[6].segments[order] for f in frames]) if curves else None,
+        motion_box=lax.stop_gradient(jnp.stack([f[7][order] for f in frames])) if boxes else None,
+        motion=motion,
+    )
+
+
+_build_jit = jax.jit(_build, static_argnums=(1, 2, 3))
 #: Build qualities: the LBVH ("fast") and agglomerative clustering of its Morton order ("high").
 QUALITIES = ("fast", "high")
 
@@ -296,7 +408,10 @@ def build_primitive_structure(
     Args:
       geometries: a geometry or a sequence of them; hits report the position in this sequence as
         ``geometry_id``.
-      motion: keyframe motion (not supported by triangle-only structures yet; must be ``None``).
+      motion: the time range and border modes (a :class:`~jaxrt.MotionSpec`) of the ``Motion*Geometry``
+        keyframes among ``geometries`` (required with them, refused without them). Every motion geometry of
+        the structure has the same keyframe count; static geometries stay put at every time. Node boxes bound
+        each primitive over all keyframes (the union of its keyframe boxes); rays read ``rt.Ray.time``.
       capacity: optional minimum number of primitive slots. The capacity is rounded up to a power of two
         (at least 2) so that scenes of similar size share compiled code.
       quality: ``"fast"`` (the LBVH) or ``"high"`` (the LBVH restructured by agglomerative clustering, PLOC,
@@ -318,17 +433,17 @@ def build_primitive_structure(
       >>> s.capacity
       2
     """
-    if motion is not None:
-        raise NotImplementedError("build_primitive_structure: motion is not supported for triangle geometry yet")
     if quality not in QUALITIES:
         raise ValueError(f"build_primitive_structure: quality must be one of {QUALITIES}, got {quality!r}")
     geometries = _as_geometry_tuple(geometries)
+    keys = _keyframe_count(geometries, motion, "build_primitive_structure")  # named errors outside jit
     if checks:
         from jaxrt._src.checks import check_geometries
 
-        check_geometries(geometries, "build_primitive_structure")
+        for k, frame in enumerate(_keyframes(geometries, keys)):
+            check_geometries(frame, "build_primitive_structure" + (f" (keyframe {k})" if keys > 1 else ""))
     total = sum(g.primitive_count for g in geometries)
-    return _build_jit(geometries, capacity_bucket(total, capacity), quality)
+    return _build_jit(geometries, capacity_bucket(total, capacity), quality, motion)
 
 
 @full_precision
@@ -365,6 +480,8 @@ def refit_primitives(structure: PrimitiveAccelerationStructure, geometries: Any)
     Tree quality degrades as primitives move far from where they were built; rebuild then.
     """
     geometries = _as_geometry_tuple(geometries)
+    if structure.motion is not None:
+        raise NotImplementedError("refit: structures with keyframe motion are rebuilt, not refitted")
     info = tuple(_geometry_info(g) for g in geometries)
     if info != structure.geometry_info:
         raise ValueError(f"refit: geometries {info} do not match the structure's {structure.geometry_info}")

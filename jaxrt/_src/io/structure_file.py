@@ -59,7 +59,8 @@ _PRIMITIVE_FIELDS = (
     "leaf_box",
 )
 _OPTIONAL_FIELDS = ("leaf_curve", "leaf_curve_flags", "leaf_box")
-_TABLE_FIELDS = tuple(f.name for f in dataclasses.fields(InstanceTable))
+# Keyframe motion is not part of format version 1 (``save`` refuses moving structures).
+_TABLE_FIELDS = tuple(f.name for f in dataclasses.fields(InstanceTable) if not f.name.startswith("motion"))
 #: Dtype kinds allowed in primitive data (booleans, integers, floats, complex); structure fields are fixed.
 _DATA_KINDS = "biufc"
 
@@ -139,6 +140,7 @@ def save(
       TypeError: ``structure`` is not an acceleration structure.
       ValueError: a traced or batched structure, or primitive data that JSON cannot describe (a node other
         than a dict with string keys, a list, a tuple, ``None`` or an array).
+      NotImplementedError: a structure with keyframe motion (not part of this file format version).
 
     Examples:
       >>> import os, tempfile, numpy as np, jaxrt as rt
@@ -157,6 +159,12 @@ def save(
         raise TypeError(
             f"save: structure must be a PrimitiveAccelerationStructure or an InstanceAccelerationStructure, "
             f"got {type(structure).__name__}"
+        )
+    moving = any(s.motion is not None for s in prims) or any(t.motion is not None for t in tables)
+    if moving:
+        raise NotImplementedError(
+            "save: structures with keyframe motion (primitive or instance motion) are not stored by file format "
+            f"version {FORMAT_VERSION}; save the keyframed geometry and instances and rebuild"
         )
     arrays: dict[str, np.ndarray] = {}
     prim_headers = []

@@ -31,6 +31,7 @@ def traverse(
     t_max: jax.Array,
     enabled: jax.Array,
     mask: jax.Array,
+    time: jax.Array | None = None,
     *,
     any_hit: bool,
     max_hits: int | None = None,
@@ -45,12 +46,13 @@ def traverse(
       t_min, t_max: accepted distance interval (world units, shared by every level).
       enabled: scalar bool; a disabled ray takes no step.
       mask: uint32 ray mask, AND-ed with instance masks.
+      time: the ray's time (read only with keyframe motion, ``layout.motion``).
       any_hit: static; stop at the first accepted hit.
       max_hits: static; keep the ``max_hits`` nearest hits in a :class:`~jaxrt._src.traversal.step.HitList`
         (``0`` with ``count_all``: only count them).
       count_all: static; with ``max_hits``, never cull (count every hit).
     """
-    ray, state = steps.start(tester, layout, origin, direction, t_min, t_max, enabled, mask, max_hits=max_hits)
+    ray, state = steps.start(tester, layout, origin, direction, t_min, t_max, enabled, mask, time, max_hits=max_hits)
     body = functools.partial(steps.step, scene, layout, tester, ray, any_hit=any_hit, count_all=count_all)
     return steps.result(lax.while_loop(lambda s: ~s.done, body, state))
 
@@ -70,6 +72,7 @@ def traverse_refill(
     t_max: jax.Array,
     enabled: jax.Array,
     mask: jax.Array,
+    time: jax.Array | None = None,
     *,
     any_hit: bool,
     max_hits: int | None = None,
@@ -89,7 +92,8 @@ def traverse_refill(
     n = origin.shape[0]
     width = min(lanes, n)
     start = functools.partial(steps.start, tester, layout, stack_size=1, max_hits=max_hits)
-    rays, initial = jax.vmap(start)(origin, direction, t_min, t_max, enabled, mask)
+    per_ray = (origin, direction, t_min, t_max, enabled, mask) + ((time,) if time is not None else ())
+    rays, initial = jax.vmap(start)(*per_ray)
     options = dict(any_hit=any_hit, count_all=count_all)
     visit = jax.vmap(functools.partial(steps.visit, scene, layout, tester, **options))
     transition = jax.vmap(functools.partial(steps.transition, scene, tester))

@@ -36,6 +36,8 @@ class TraversalScene(NamedTuple):
     instance_facing: jax.Array  # (G,) int32 in {-1, 0, 1}
     instance_mask: jax.Array  # (G,) uint32
     node_range: jax.Array | None = None  # (M, 2) int32 leaf range per node (zero levels only; wide layouts)
+    instance_motion: Any = None  # keyframed transforms (:class:`~jaxrt._src.instances.InstanceMotion`), or None
+    node_motion: Any = None  # zero levels with primitive motion: (lower, upper) node boxes per keyframe (K, M, 2, 3)
 
 
 class TraversalLayout(NamedTuple):
@@ -45,6 +47,8 @@ class TraversalLayout(NamedTuple):
     primitive_leaves: int  # P: leaves below it are primitives, the rest instances
     levels: int  # instance levels (0: a primitive structure)
     stack_size: int  # entries of the traversal stack that can never overflow (see :func:`~jaxrt._src.bvh.radix_tree.tree_depth_bound`)
+    motion: bool = False  # keyframe motion (primitives or instances): the traversal reads each ray's time
+    node_spec: Any = None  # with ``node_motion``: the MotionSpec whose keyframes the node boxes follow
 
 
 class TraversalResult(NamedTuple):

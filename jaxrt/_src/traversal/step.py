@@ -45,6 +45,7 @@ __all__ = [
     "State",
     "SCRATCH",
     "needs_transition",
+    "prepare",
     "result",
     "select_level",
     "start",
@@ -114,6 +115,14 @@ class RayConstants(NamedTuple):
     context: Any  # the leaf tester's constants for the world-space ray
     t_min: jax.Array
     mask: jax.Array | None  # uint32, AND-ed with instance masks (with instances only)
+    time: jax.Array | None = None  # the ray's time (with keyframe motion only)
+
+
+def prepare(tester: LeafTester, origin: jax.Array, direction: jax.Array, facing: Any, time: Any) -> Any:
+    """The tester's per-ray constants; testers of moving primitives (``reads_time``) also take the time."""
+    if getattr(tester, "reads_time", False):
+        return tester.prepare(origin, direction, facing, time)
+    return tester.prepare(origin, direction, facing)
 
 
 class State(NamedTuple):
@@ -155,16 +164,19 @@ def start(
     t_max: jax.Array,
     enabled: jax.Array,
     mask: jax.Array,
+    time: jax.Array | None = None,
     *,
     stack_size: int | None = None,
     max_hits: int | None = None,
 ) -> tuple[RayConstants, State]:
-    """Per-ray constants and the initial state of one ray (a disabled ray starts done)."""
+    """Per-ray constants and the initial state of one ray (a disabled ray starts done). ``time`` is read
+    only by scenes with keyframe motion (``layout.motion``)."""
     levels = layout.levels
     stack_size = layout.stack_size if stack_size is None else stack_size
     int_zero = jnp.zeros((), jnp.int32)
     inv_direction = safe_reciprocal(direction)
-    context = tester.prepare(origin, direction, jnp.ones((), jnp.int32) if levels else None)
+    time = jnp.asarray(time, origin.dtype) if layout.motion and time is not None else None
+    context = prepare(tester, origin, direction, jnp.ones((), jnp.int32) if levels else None, time)
     # Without instances the direction and the mask are never read again: not carried (the refill driver
     # selects every carried field of a lane that takes a new ray).
     ray = RayConstants(
@@ -174,6 +186,7 @@ def start(
         context,
         t_min,
         jnp.asarray(mask, jnp.uint32) if levels else None,
+        time,
     )
     hits = None
     if max_hits is not None:
@@ -235,9 +248,10 @@ def visit(
     else:
         origin, inv_direction, context = ray.origin, ray.inv_direction, ray.context
     children = scene.node_children[s.node]
-    box_hit, t_near = ray_box(
-        origin, inv_direction, ray.t_min, s.distance, scene.node_lower[s.node], scene.node_upper[s.node]
-    )
+    lower, upper = scene.node_lower[s.node], scene.node_upper[s.node]
+    if scene.node_motion is not None:  # the node's keyframe boxes blended at the ray's time
+        lower, upper = _node_boxes_at(scene.node_motion, layout.node_spec, s.node, ray.time)
+    box_hit, t_near = ray_box(origin, inv_direction, ray.t_min, s.distance, lower, upper)
     box_hit &= active
     is_leaf = children < 0
     leaf_index = -1 - children
@@ -246,6 +260,8 @@ def visit(
         is_instance = is_leaf & ~is_primitive
         instance = jnp.clip(leaf_index - layout.primitive_leaves, 0, scene.instance_mask.shape[0] - 1)
         visible = (scene.instance_mask[instance] & ray.mask) != 0
+        if scene.instance_motion is not None:  # a moving instance on a "vanish" border is not there
+            visible &= _instance_visible(scene.instance_motion, instance, ray.time)
     else:
         is_primitive = is_leaf
     test = is_primitive & box_hit
@@ -313,6 +329,37 @@ def visit(
     )
 
 
+def _node_boxes_at(node_motion: Any, spec: Any, node: jax.Array, time: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Node ``node``'s child boxes blended at ``time``. Each primitive blended at ``time`` lies in the blend of
+    its keyframe boxes, which lies in the blend of the node's keyframe boxes (rounding is monotone, so also
+    in floating point); equal corners (empty children, static geometry) are kept as they are."""
+    from jaxrt._src.motion import blend, spec_position
+
+    lower_keys, upper_keys = node_motion
+    p = spec_position(spec, lower_keys.shape[0], time)
+
+    def at(keys):
+        a, b = keys[p.index, node], keys[p.index + 1, node]
+        return jnp.where(a == b, a, blend(a, b, p.weight))
+
+    return at(lower_keys), at(upper_keys)
+
+
+def _instance_visible(motion: Any, instance: jax.Array, time: jax.Array) -> jax.Array:
+    """Whether instances exist at ``time`` (only moving ones on a ``"vanish"`` border can be absent)."""
+    from jaxrt._src.motion import keyframe_position
+
+    position = keyframe_position(
+        time,
+        motion.count[instance],
+        motion.start[instance],
+        motion.end[instance],
+        motion.vanish_start[instance],
+        motion.vanish_end[instance],
+    )
+    return position.visible | ~motion.moving[instance]
+
+
 def select_level(level: jax.Array, top: jax.Array, per_level: jax.Array) -> jax.Array:
     """``top`` at level 0, else ``per_level[level - 1]`` (selects: the level count is small and static)."""
     out = top
@@ -338,6 +385,11 @@ def transition(scene: TraversalScene, tester: LeafTester, ray: RayConstants, s: 
     entering = need & (s.node < 0)
     g = jnp.clip(-1 - s.node, 0, instances - 1)
     m = scene.instance_world_to_object[g]
+    if scene.instance_motion is not None:  # the inverse of the transform blended at the ray's time
+        from jaxrt._src.instances import instance_motion_at
+
+        _, moved, _, moving = instance_motion_at(scene.instance_motion, g, ray.time)
+        m = jnp.where(moving, moved, m)
     # Elementwise products, not matmuls: a batched 3x3 dot is a slow library call on the CPU.
     new_origin = jnp.sum(m[:, :3] * base_origin, axis=-1) + m[:, 3]
     new_direction = jnp.sum(m[:, :3] * base_direction, axis=-1)
@@ -348,7 +400,7 @@ def transition(scene: TraversalScene, tester: LeafTester, ray: RayConstants, s: 
     direction = jnp.where(entering, new_direction, base_direction)
     facing = jnp.where(entering, new_facing, base_facing)
     level = jnp.where(entering, s.level + 1, s.level)
-    context = tester.prepare(origin, direction, facing)
+    context = prepare(tester, origin, direction, facing, ray.time)
     keep = lambda new, old: jax.tree_util.tree_map(lambda a, b: jnp.where(need, a, b), new, old)  # noqa: E731
     return s._replace(
         node=jnp.where(entering, scene.instance_child_root[g], s.node),
