@@ -8,7 +8,7 @@ the leaf tests read). Primary rays from a pinhole camera, one random time per ra
 
 Usage::
 
-    python examples/motion_speed.py [--segments 224] [--rays 65536] [--rounds 5]
+    python -m jaxrt.bench.motion [--segments 224] [--rays 65536] [--rounds 5]
 """
 
 from __future__ import annotations
