@@ -164,8 +164,10 @@ def load_gltf_motion(
       A :class:`GltfMotion`.
 
     Raises:
-      ImportError: pygltflib is missing. FileNotFoundError: a missing file or buffer. ValueError: fewer than
-      2 keyframes, no animation (or an index out of range), an animation of zero duration, or no triangles.
+      ImportError: pygltflib is missing.
+      FileNotFoundError: a missing file or buffer.
+      ValueError: fewer than 2 keyframes, no animation (or an index out of range), an animation of zero
+        duration, or no triangles.
     """
     try:
         import pygltflib
