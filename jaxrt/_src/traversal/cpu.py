@@ -1,0 +1,184 @@
+"""CPU traversal: a Numba-compiled stack traversal called through ``jax.pure_callback``, behind the same contract
+as the portable traversal.
+
+:func:`trace_scene` traces a :class:`~jaxrt._src.traversal.scene.TraversalScene` (any number of instance
+levels) and returns the :class:`~jaxrt._src.traversal.scene.TraversalResult` of the portable traversal: the same
+leaf, distance, instance chain and stats counters, decided with the same float operations
+(:mod:`jaxrt._src.traversal.cpu_kernel` says how). Rays are traced in parallel over the machine's cores (Numba's
+default thread count; ``NUMBA_NUM_THREADS`` changes it).
+
+The intersector picks this path (``backend="auto"`` or ``"cpu"``) when :func:`unavailable_reason` returns
+``None`` (the default JAX backend is the CPU and Numba imports) and
+:func:`jaxrt._src.pipeline.kernel_declines` finds the scene and intersector covered: triangles, flat or
+instanced at any depth, nearest and any hit, cull modes and windings, ray intervals, ray and instance masks,
+disabled rays and the stats counters, in float32 or float64.
+
+Composition:
+  - ``jax.jit``: the traversal is one host callback; Numba compiles once per dtype (not per shape), and
+    ``cache=True`` keeps the machine code on disk for later processes.
+  - ``jax.vmap``: the callback's ``vmap_method="expand_dims"`` hands it the batch axes; rays batched over one
+    scene are traced in one parallel call, batches of scenes one scene after another.
+  - ``jax.grad``: the inputs are detached; the intersector re-computes the hit differentiably in JAX.
+"""
+
+from __future__ import annotations
+
+import functools
+import threading
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from jaxrt._src import numerics
+from jaxrt._src.primitives import box
+from jaxrt._src.traversal.scene import TraversalLayout, TraversalResult, TraversalScene
+
+__all__ = ["constants", "trace_scene", "unavailable_reason"]
+
+#: Base ranks of the callback's arguments (scene arrays, then rays); leading axes beyond them are vmap axes.
+_SCENE_RANKS = (3, 3, 2, 3, 3, 1, 1, 1)
+_RAY_RANKS = (2, 2, 1, 1, 1, 1)
+#: One trace at a time: Numba's default threading layer does not run two parallel regions at once.
+_LOCK = threading.Lock()
+
+
+@functools.lru_cache(maxsize=1)
+def _import_error() -> str | None:
+    try:
+        import numba  # noqa: F401
+    except ImportError as error:  # pragma: no cover - depends on the install
+        return f"Numba cannot be imported ({error}); install numba>=0.61"
+    return None
+
+
+def unavailable_reason(intersector: Any = None) -> str | None:
+    """Why the CPU traversal cannot run here, or ``None`` when it can."""
+    del intersector  # the scene-dependent rules are in :func:`jaxrt._src.pipeline.kernel_declines`
+    backend = jax.default_backend()
+    if backend != "cpu":
+        return f"the default JAX backend is {backend!r}; the CPU traversal runs on the CPU backend"
+    return _import_error()
+
+
+def constants(dtype: Any) -> np.ndarray:
+    """The float constants of the traversal in ``dtype``, rounded as the portable path rounds them."""
+    t = np.dtype(dtype).type
+    return np.array(
+        [
+            1.0,
+            0.0,
+            np.inf,
+            t(numerics.RECIPROCAL_CLAMP),  # |d| below it is clamped up to it
+            t(1.0 / numerics.RECIPROCAL_CLAMP),  # |d| above it is clamped down to sign / clamp
+            t(numerics.RECIPROCAL_CLAMP),
+            t(box.FAR_SCALE),
+            t(box.PARALLEL_RECIPROCAL),
+        ],
+        dtype,
+    )
+
+
+def _run(params: tuple, arrays: list[np.ndarray]) -> tuple[np.ndarray, ...]:
+    """Trace one scene's rays (flat ``(n, ...)`` arrays) with the compiled kernel."""
+    from jaxrt._src.traversal import cpu_kernel
+
+    arrays = [np.ascontiguousarray(a) for a in arrays]
+    origin = arrays[8]
+    n, levels = origin.shape[0], params[2]
+    dtype = origin.dtype
+    out = (
+        np.empty(n, dtype),
+        np.empty(n, np.int32),
+        np.empty((n, levels), np.int32),
+        np.empty(n, np.int32),
+        np.empty(n, np.int32),
+        np.empty(n, np.bool_),
+    )
+    with _LOCK:
+        cpu_kernel.trace_rays(*arrays, constants(dtype), np.asarray(params, np.int64), *out)
+    return out
+
+
+def _host(params: tuple, *args: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The callback: ``args`` may carry leading vmap axes (size 1 where an argument is not batched)."""
+    ranks = _SCENE_RANKS + _RAY_RANKS
+    args = [np.asarray(a) for a in args]
+    lead = [a.shape[: a.ndim - r] for a, r in zip(args, ranks, strict=True)]
+    batch = np.broadcast_shapes(*lead)
+    if not batch:
+        return _run(params, args)
+    scenes = int(np.prod(np.broadcast_shapes(*lead[:8]), dtype=np.int64))
+    if scenes == 1:  # rays batched over one scene: one parallel call over all of them
+        scene = [a.reshape(a.shape[a.ndim - r :]) for a, r in zip(args[:8], _SCENE_RANKS, strict=True)]
+        rays = [np.broadcast_to(a, batch + a.shape[a.ndim - r :]) for a, r in zip(args[8:], _RAY_RANKS, strict=True)]
+        n = rays[0].shape[-2]
+        out = _run(params, scene + [a.reshape(-1, *a.shape[len(batch) + 1 :]) for a in rays])
+        return tuple(a.reshape(*batch, n, *a.shape[1:]) for a in out)
+    full = [np.broadcast_to(a, batch + a.shape[a.ndim - r :]) for a, r in zip(args, ranks, strict=True)]
+    results = [_run(params, [a[index] for a in full]) for index in np.ndindex(*batch)]
+    return tuple(np.stack(parts).reshape(*batch, *parts[0].shape) for parts in zip(*results, strict=True))
+
+
+def trace_scene(
+    scene: TraversalScene,
+    layout: TraversalLayout,
+    origin: jax.Array,
+    direction: jax.Array,
+    t_min: jax.Array,
+    t_max: jax.Array,
+    enabled: jax.Array,
+    mask: jax.Array,
+    *,
+    any_hit: bool,
+    cull: int,
+) -> TraversalResult:
+    """Trace rays through a scene of any instance depth with the compiled CPU traversal.
+
+    Args:
+      scene: the global node arrays (:func:`jaxrt._src.scene_view.traversal_scene`), float32 or float64; the
+        rays must have the same float dtype.
+      layout: its static layout (root, primitive leaves, levels, stack size).
+      origin, direction: ``(N, 3)`` world-space rays; a disabled ray must still have a non-zero direction.
+      t_min, t_max: ``(N,)`` accepted distance interval (world units at every level).
+      enabled: ``(N,)`` bool; disabled rays miss (distance ``-inf``) and take no step.
+      mask: ``(N,)`` uint32 ray masks; an instance is entered only where ``instance_mask & mask != 0``.
+      any_hit: stop at the first accepted hit.
+      cull: 0 culls nothing, +1 clockwise triangles, -1 counterclockwise ones; below instances the sense is
+        multiplied by the chain's ``instance_facing``.
+
+    Returns:
+      The portable traversal's :class:`~jaxrt._src.traversal.scene.TraversalResult`.
+    """
+    dtype = scene.node_lower.dtype
+    if origin.dtype != dtype:
+        raise ValueError(f"traversal.cpu.trace_scene: rays are {origin.dtype} but the scene is {dtype}")
+    levels = int(layout.levels)
+    params = (int(layout.root), int(layout.primitive_leaves), levels, int(layout.stack_size), int(bool(any_hit)), int(cull))  # fmt: skip
+    detached = lax.stop_gradient
+    args = (
+        detached(scene.node_lower),
+        detached(scene.node_upper),
+        scene.node_children.astype(jnp.int32),
+        detached(scene.leaf_triangle),
+        detached(scene.instance_world_to_object).astype(dtype),
+        scene.instance_child_root.astype(jnp.int32),
+        scene.instance_facing.astype(jnp.int32),
+        scene.instance_mask.astype(jnp.uint32),
+        *(detached(a) for a in (origin, direction, t_min, t_max)),
+        enabled.astype(bool),
+        mask.astype(jnp.uint32),
+    )
+    n = origin.shape[0]
+    shapes = (
+        jax.ShapeDtypeStruct((n,), dtype),
+        jax.ShapeDtypeStruct((n,), jnp.int32),
+        jax.ShapeDtypeStruct((n, levels), jnp.int32),
+        jax.ShapeDtypeStruct((n,), jnp.int32),
+        jax.ShapeDtypeStruct((n,), jnp.int32),
+        jax.ShapeDtypeStruct((n,), jnp.bool_),
+    )
+    out = jax.pure_callback(functools.partial(_host, params), shapes, *args, vmap_method="expand_dims")
+    return TraversalResult(*out)
