@@ -4,8 +4,8 @@ as the portable traversal.
 :func:`trace_scene` traces a :class:`~jaxrt._src.traversal.scene.TraversalScene` (any number of instance
 levels) and returns the :class:`~jaxrt._src.traversal.scene.TraversalResult` of the portable traversal: the same
 leaf, distance, instance chain and stats counters, decided with the same float operations
-(:mod:`jaxrt._src.traversal.cpu_kernel` says how). Rays are traced in parallel over the machine's cores (Numba's
-default thread count; ``NUMBA_NUM_THREADS`` changes it).
+(:mod:`jaxrt._src.traversal.cpu_kernel` says how). Rays are traced in parallel over the machine's cores
+(:func:`threads`): the compiled loop releases the GIL, and a thread pool runs ranges of rays.
 
 The intersector picks this path (``backend="auto"`` or ``"cpu"``) when :func:`unavailable_reason` returns
 ``None`` (the default JAX backend is the CPU and Numba imports) and
@@ -24,7 +24,8 @@ Composition:
 from __future__ import annotations
 
 import functools
-import threading
+import os
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import jax
@@ -41,8 +42,27 @@ __all__ = ["constants", "trace_scene", "unavailable_reason"]
 #: Base ranks of the callback's arguments (scene arrays, then rays); leading axes beyond them are vmap axes.
 _SCENE_RANKS = (3, 3, 2, 3, 3, 1, 1, 1)
 _RAY_RANKS = (2, 2, 1, 1, 1, 1)
-#: One trace at a time: Numba's default threading layer does not run two parallel regions at once.
-_LOCK = threading.Lock()
+#: Tasks per thread (rays cost unevenly: small tasks keep every thread busy to the end).
+TASKS_PER_THREAD = 16
+#: Fewest rays per task worth a thread.
+MIN_TASK = 64
+
+
+def threads() -> int:
+    """Threads the CPU traversal uses: the cores this process may run on (``JAXRT_CPU_THREADS`` overrides)."""
+    value = os.environ.get("JAXRT_CPU_THREADS")
+    if value:
+        return max(1, int(value))
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+@functools.cache
+def _pool_of(workers: int) -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(workers, thread_name_prefix="jaxrt-cpu")
+
+
+def _pool() -> ThreadPoolExecutor:
+    return _pool_of(threads())
 
 
 @functools.lru_cache(maxsize=1)
@@ -97,8 +117,15 @@ def _run(params: tuple, arrays: list[np.ndarray]) -> tuple[np.ndarray, ...]:
         np.empty(n, np.int32),
         np.empty(n, np.bool_),
     )
-    with _LOCK:
-        cpu_kernel.trace_rays(*arrays, constants(dtype), np.asarray(params, np.int64), *out)
+    consts, flags = constants(dtype), np.asarray(params, np.int64)
+    run = functools.partial(cpu_kernel.trace_rays, *arrays, consts, flags)
+    workers = threads()
+    tasks = min(n, workers * TASKS_PER_THREAD) if n >= workers * MIN_TASK else 1
+    bounds = [n * k // tasks for k in range(tasks + 1)]
+    if tasks <= 1:
+        run(0, n, *out)
+    else:  # the kernel releases the GIL: ranges run in parallel, small tasks balance uneven rays
+        list(_pool().map(lambda k: run(bounds[k], bounds[k + 1], *out), range(tasks)))
     return out
 
 
