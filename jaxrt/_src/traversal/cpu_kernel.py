@@ -163,6 +163,13 @@ def _triangle(v, o0, o1, o2, kx, ky, kz, sx, sy, sz, t_min, t_max, cull, inf):
     return False, inf
 
 
+@numba.njit(cache=True)
+def _row(m0, m1, m2, x0, x1, x2):
+    """``m0 x0 + m1 x1 + m2 x2`` as XLA's CPU backend sums a row of the transform in the portable transition:
+    a reduction whose multiply-adds are contracted, ``fma(m2, x2, fma(m1, x1, m0 x0))``."""
+    return _fma(m2, x2, _fma(m1, x1, m0 * x0))
+
+
 @numba.njit(nogil=True, cache=True)
 def trace_rays(
     node_lower, node_upper, node_children, leaf_triangle, world_to_object, child_root, instance_facing,
@@ -306,13 +313,13 @@ def trace_rays(
                 if node < 0:
                     g = min(max(-1 - node, 0), instances - 1)
                     m = world_to_object
-                    # Row by row, as the portable transition sums them (unfused, left to right).
-                    n0 = m[g, 0, 0] * b0 + m[g, 0, 1] * b1 + m[g, 0, 2] * b2 + m[g, 0, 3]
-                    n1 = m[g, 1, 0] * b0 + m[g, 1, 1] * b1 + m[g, 1, 2] * b2 + m[g, 1, 3]
-                    n2 = m[g, 2, 0] * b0 + m[g, 2, 1] * b1 + m[g, 2, 2] * b2 + m[g, 2, 3]
-                    v0 = m[g, 0, 0] * d0 + m[g, 0, 1] * d1 + m[g, 0, 2] * d2
-                    v1 = m[g, 1, 0] * d0 + m[g, 1, 1] * d1 + m[g, 1, 2] * d2
-                    v2 = m[g, 2, 0] * d0 + m[g, 2, 1] * d1 + m[g, 2, 2] * d2
+                    # Row by row, as the portable transition sums them.
+                    n0 = _row(m[g, 0, 0], m[g, 0, 1], m[g, 0, 2], b0, b1, b2) + m[g, 0, 3]
+                    n1 = _row(m[g, 1, 0], m[g, 1, 1], m[g, 1, 2], b0, b1, b2) + m[g, 1, 3]
+                    n2 = _row(m[g, 2, 0], m[g, 2, 1], m[g, 2, 2], b0, b1, b2) + m[g, 2, 3]
+                    v0 = _row(m[g, 0, 0], m[g, 0, 1], m[g, 0, 2], d0, d1, d2)
+                    v1 = _row(m[g, 1, 0], m[g, 1, 1], m[g, 1, 2], d0, d1, d2)
+                    v2 = _row(m[g, 2, 0], m[g, 2, 1], m[g, 2, 2], d0, d1, d2)
                     facing = base_facing * instance_facing[g]
                     level_ray[level, 0], level_ray[level, 1], level_ray[level, 2] = n0, n1, n2
                     level_ray[level, 3], level_ray[level, 4], level_ray[level, 5] = v0, v1, v2
