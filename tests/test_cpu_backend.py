@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from reference import (
     SMALL_CAPACITY,
     assert_matches_reference,
@@ -53,7 +53,6 @@ ANY_CULLED = _pair(
     triangle_cull_mode="front",
     front_facing_winding="counterclockwise",
 )
-CULL_BACK = _pair(rt.tags.triangle_data, rt.tags.stats, triangle_cull_mode="back")
 INSTANCED = _pair(rt.tags.instancing, rt.tags.max_levels(2), rt.tags.triangle_data, rt.tags.stats)
 INSTANCED_ANY = _pair(
     rt.tags.instancing, rt.tags.max_levels(2), rt.tags.triangle_data, accept_any_intersection=True,
@@ -63,9 +62,7 @@ INSTANCED_ANY = _pair(
 
 def _assert_same(pair, structure, origin, direction, min_distance=0.0, max_distance=np.inf, mask=0xFFFFFFFF):
     """Trace with both backends (fixed batches, see ``reference.trace``) and require identical fields."""
-    portable, compiled = (
-        trace(i, structure, origin, direction, min_distance, max_distance, mask) for i in pair
-    )
+    portable, compiled = (trace(i, structure, origin, direction, min_distance, max_distance, mask) for i in pair)
     names = [k for k in portable if k in FIELDS + STATS or k in ("instance_id", "instance_count")]
     assert names
     for name in names:
@@ -81,7 +78,7 @@ def _build(vertices, indices=None):
 # --- hard cases -------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("pair", [NEAREST, ANY_CULLED, CULL_BACK], ids=["nearest", "any-culled", "cull-back"])
+@pytest.mark.parametrize("pair", [NEAREST, ANY_CULLED], ids=["nearest", "any-culled"])
 def test_closed_mesh_far_from_the_origin_through_vertices_and_edges(pair):
     v, f = icosphere(1)
     vertices = (v * [40.0, 25.0, 15.0] + FAR).astype(np.float32)
@@ -163,6 +160,7 @@ def test_degenerate_triangles_and_disabled_rays():
 # --- random scenes: the portable path, and the float64 brute force -----------------------------------------------
 
 
+@settings(max_examples=8)
 @given(seeds, far_exponents, scale_exponents)
 def test_random_scenes_equal_the_portable_path_and_match_brute_force(seed, far_exp, scale_exp):
     scene = random_scene(seed, far_exp, scale_exp)
@@ -190,7 +188,6 @@ def test_two_level_instances_with_masks_equal_the_portable_path(kind):
     ray_mask = np.random.default_rng(4).choice([1, 2, 4, 8, 6, 0xFF, 0x100], len(origin)).astype(np.uint32)
     result = _assert_same(INSTANCED, scene.structure, origin, direction, mask=ray_mask)
     assert (np.asarray(result.type) != 0).any() and (np.asarray(result.instance_count) == 2).any()
-    _assert_same(INSTANCED_ANY, scene.structure, origin, direction, mask=ray_mask)
     _assert_same(INSTANCED, scene.structure, origin, direction)
 
 
@@ -212,10 +209,8 @@ def test_culling_below_mirrored_instances_and_instance_options():
     for sign in (1.0, -1.0):
         origin[:, 2] = sign
         direction = np.broadcast_to(np.array([0, 0, -sign], np.float32), origin.shape)
-        for pair in (INSTANCED, INSTANCED_ANY):
-            _assert_same(pair, outer, origin, direction)
-    result = _assert_same(INSTANCED_ANY, outer, origin, direction)
-    assert (np.asarray(result.type) != 0).any() and (np.asarray(result.type) == 0).any()
+        result = _assert_same(INSTANCED_ANY, outer, origin, direction)
+        assert (np.asarray(result.type) != 0).any() and (np.asarray(result.type) == 0).any()
 
 
 # --- composition: jit, vmap, grad, float64, buckets ---------------------------------------------------------------
@@ -226,28 +221,32 @@ def _mesh_and_rays(n=64, seed=0):
     rng = np.random.default_rng(seed)
     origin = rng.normal(size=(n, 3)) * 3
     direction = rng.normal(size=(n, 3)) * 0.3 - origin
+    direction[::4] = rng.normal(size=direction[::4].shape)  # some rays miss
     return v.astype(np.float32), f, origin.astype(np.float32), direction.astype(np.float32)
 
 
-def test_jit_vmap_over_rays_and_scenes_equal_the_portable_path():
+def test_jit_and_vmap_over_rays_and_scenes_equal_unbatched_calls():
+    """Under ``vmap`` the callback gets the batch axes: one call for rays over one scene, a loop over scenes."""
     v, f, origin, direction = _mesh_and_rays()
-    structure = rt.build_primitive_structure(rt.TriangleGeometry(v, f))
-    portable, compiled = _pair(rt.tags.triangle_data)
+    intersector = rt.Intersector(rt.tags.triangle_data, backend="cpu")
+    scales = (1.0, 1.5)
+    structures = [rt.build_primitive_structure(rt.TriangleGeometry(v * s, f)) for s in scales]
+    halves = [rt.Ray(origin[i * 32 : (i + 1) * 32], direction[i * 32 : (i + 1) * 32]) for i in range(2)]
+    expected = np.stack(
+        [np.asarray(intersector.intersect(r, s).primitive_id) for r, s in zip(halves, structures, strict=True)]
+    )
+    assert (expected >= 0).any() and (expected < 0).any()
     rays = rt.Ray(origin.reshape(2, 32, 3), direction.reshape(2, 32, 3))
-    for fn in (
-        lambda i: jax.jit(lambda r: i.intersect(r, structure).distance)(rays),
-        lambda i: jax.vmap(lambda r: i.intersect(r, structure).distance)(rays),
-    ):
-        np.testing.assert_array_equal(np.asarray(fn(compiled)), np.asarray(fn(portable)))
-    scales = jnp.array([1.0, 1.5], jnp.float32)
-    structures = jax.vmap(lambda s: rt.build_primitive_structure(rt.TriangleGeometry(v * s, f)))(scales)
-    for batched_rays in (rays, rt.Ray(origin[:32], direction[:32])):
-        axes = 0 if batched_rays is rays else None
-        outs = [
-            jax.vmap(lambda r, s, i=i: i.intersect(r, s).primitive_id, in_axes=(axes, 0))(batched_rays, structures)
-            for i in (portable, compiled)
-        ]
-        np.testing.assert_array_equal(np.asarray(outs[1]), np.asarray(outs[0]))
+    jitted = jax.jit(lambda r: intersector.intersect(r, structures[0]).primitive_id)(halves[0])
+    np.testing.assert_array_equal(np.asarray(jitted), expected[0])
+    over_rays = jax.vmap(lambda r: intersector.intersect(r, structures[0]).primitive_id)(rays)
+    np.testing.assert_array_equal(np.asarray(over_rays)[0], expected[0])
+    np.testing.assert_array_equal(
+        np.asarray(over_rays)[1], np.asarray(intersector.intersect(halves[1], structures[0]).primitive_id)
+    )
+    stacked = jax.vmap(lambda s: rt.build_primitive_structure(rt.TriangleGeometry(v * s, f)))(jnp.array(scales))
+    over_scenes = jax.vmap(lambda r, s: intersector.intersect(r, s).primitive_id)(rays, stacked)
+    np.testing.assert_array_equal(np.asarray(over_scenes), expected)
 
 
 def test_gradients_equal_the_portable_path():
@@ -304,8 +303,8 @@ def test_auto_picks_the_cpu_traversal_and_forced_backends_explain_themselves(mon
     rays = rt.Ray([0.2, 0.2, 1.0], [0.0, 0.0, -1.0])
     with pytest.raises(ValueError, match="backend='cpu' cannot run: multi-hit"):
         rt.Intersector(backend="cpu", max_hits=2).intersect(rays, structure)
-    # Declined cases under "auto" take the portable traversal.
-    assert int(rt.Intersector(max_hits=2).intersect(rays, structure).hit_count) == 1
+    # Declined cases under "auto" take the portable traversal (they are traced in test_multi_hit.py).
+    assert pipeline.kernel_declines(rt.Intersector(max_hits=2), structure.geometry_info) is not None
     monkeypatch.setattr(jax, "default_backend", lambda: "tpu")
     with pytest.raises(ValueError, match="backend='cpu' cannot run: the default JAX backend is 'tpu'"):
         rt.Intersector(backend="cpu").intersect(rays, structure)
