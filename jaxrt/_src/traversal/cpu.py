@@ -42,6 +42,8 @@ __all__ = ["constants", "trace_scene", "unavailable_reason"]
 #: Base ranks of the callback's arguments (scene arrays, then rays); leading axes beyond them are vmap axes.
 _SCENE_RANKS = (3, 3, 2, 3, 3, 1, 1, 1)
 _RAY_RANKS = (2, 2, 1, 1, 1, 1)
+#: Positions of the float arguments (scene geometry and rays).
+_FLOAT_ARGS = (0, 1, 3, 4, 8, 9, 10, 11)
 #: Tasks per thread (rays cost unevenly: small tasks keep every thread busy to the end).
 TASKS_PER_THREAD = 16
 #: Fewest rays per task worth a thread.
@@ -129,8 +131,26 @@ def _run(params: tuple, arrays: list[np.ndarray]) -> tuple[np.ndarray, ...]:
     return out
 
 
-def _host(params: tuple, *args: np.ndarray) -> tuple[np.ndarray, ...]:
-    """The callback: ``args`` may carry leading vmap axes (size 1 where an argument is not batched)."""
+def _host(params: tuple, wide: bool, *args: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The callback: ``args`` may carry leading vmap axes (size 1 where an argument is not batched).
+
+    Float64 arrays travel both ways as pairs of uint32 words (``wide``): JAX converts a callback's float64
+    arguments and results to float32 when the thread that runs it has ``jax_enable_x64`` off
+    (``jax.enable_x64`` is a per-thread setting).
+    """
+    if wide:
+        args = tuple(
+            np.ascontiguousarray(a).view(np.float64)[..., 0] if i in _FLOAT_ARGS else a for i, a in enumerate(args)
+        )
+    out = _host_arrays(params, *args)
+    distance = out[0]
+    if wide:
+        distance = distance.view(np.uint32).reshape(*distance.shape, 2)
+    return (distance, *out[1:])
+
+
+def _host_arrays(params: tuple, *args: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The traversal's outputs for callback arguments with leading vmap axes."""
     ranks = _SCENE_RANKS + _RAY_RANKS
     args = [np.asarray(a) for a in args]
     lead = [a.shape[: a.ndim - r] for a, r in zip(args, ranks, strict=True)]
@@ -185,27 +205,30 @@ def trace_scene(
     levels = int(layout.levels)
     params = (int(layout.root), int(layout.primitive_leaves), levels, int(layout.stack_size), int(bool(any_hit)), int(cull))  # fmt: skip
     detached = lax.stop_gradient
+    wide = jnp.dtype(dtype).itemsize == 8
+    words = lambda a: lax.bitcast_convert_type(detached(a).astype(dtype), jnp.uint32) if wide else detached(a)  # noqa: E731
     args = (
-        detached(scene.node_lower),
-        detached(scene.node_upper),
+        words(scene.node_lower),
+        words(scene.node_upper),
         scene.node_children.astype(jnp.int32),
-        detached(scene.leaf_triangle),
-        detached(scene.instance_world_to_object).astype(dtype),
+        words(scene.leaf_triangle),
+        words(scene.instance_world_to_object),
         scene.instance_child_root.astype(jnp.int32),
         scene.instance_facing.astype(jnp.int32),
         scene.instance_mask.astype(jnp.uint32),
-        *(detached(a) for a in (origin, direction, t_min, t_max)),
+        *(words(a) for a in (origin, direction, t_min, t_max)),
         enabled.astype(bool),
         mask.astype(jnp.uint32),
     )
     n = origin.shape[0]
     shapes = (
-        jax.ShapeDtypeStruct((n,), dtype),
+        jax.ShapeDtypeStruct((n, 2), jnp.uint32) if wide else jax.ShapeDtypeStruct((n,), dtype),
         jax.ShapeDtypeStruct((n,), jnp.int32),
         jax.ShapeDtypeStruct((n, levels), jnp.int32),
         jax.ShapeDtypeStruct((n,), jnp.int32),
         jax.ShapeDtypeStruct((n,), jnp.int32),
         jax.ShapeDtypeStruct((n,), jnp.bool_),
     )
-    out = jax.pure_callback(functools.partial(_host, params), shapes, *args, vmap_method="expand_dims")
-    return TraversalResult(*out)
+    out = jax.pure_callback(functools.partial(_host, params, wide), shapes, *args, vmap_method="expand_dims")
+    distance = lax.bitcast_convert_type(out[0], dtype) if wide else out[0]
+    return TraversalResult(distance, *out[1:])
