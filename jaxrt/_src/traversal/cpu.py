@@ -54,7 +54,9 @@ def threads() -> int:
     """Threads the CPU traversal uses: the cores this process may run on (``JAXRT_CPU_THREADS`` overrides)."""
     value = os.environ.get("JAXRT_CPU_THREADS")
     if value:
-        return max(1, int(value))
+        if not value.strip().isdigit() or int(value) < 1:
+            raise ValueError(f"traversal.cpu: JAXRT_CPU_THREADS must be a positive integer, got {value!r}")
+        return int(value)
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
