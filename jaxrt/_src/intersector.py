@@ -45,7 +45,7 @@ _GEOMETRY_TYPES = {
 }
 _CULL_MODES = ("none", "front", "back")
 _WINDINGS = ("clockwise", "counterclockwise")
-_BACKENDS = ("auto", "portable", "gpu")
+_BACKENDS = ("auto", "portable", "gpu", "cpu")
 
 
 class Intersector:
@@ -58,7 +58,9 @@ class Intersector:
       front_facing_winding: ``"clockwise"`` (Metal's default) or ``"counterclockwise"``: the winding, seen
         from the ray origin, of a front-facing triangle. With right-handed coordinates a triangle is clockwise
         when ``dot(cross(v1 - v0, v2 - v0), ray.direction) > 0``.
-      backend: ``"auto"``, ``"portable"`` (the vmapped stack traversal) or ``"gpu"``.
+      backend: ``"auto"`` (the GPU kernel on a GPU, the compiled CPU traversal on the CPU, where they cover the
+        scene; else the portable traversal), ``"portable"`` (the vmapped stack traversal in JAX: the reference,
+        and the path on TPUs), ``"gpu"`` or ``"cpu"`` (force one; ``ValueError`` where it cannot run).
       geometry_types: the geometry kinds the structures hold (Metal's ``assume_geometry_type``): one of, or a
         collection of, ``"triangle"``, ``"curve"`` (or ``rt.IntersectionType`` members). Tracing a structure
         with another kind is a ``ValueError``. ``None``: whatever the structure holds. Either way only the
@@ -242,7 +244,7 @@ class Intersector:
         _check_levels(self, structure)
         _check_motion(self, structure)
         _check_geometry(self, structure)
-        pipeline.resolve_backend(self)  # raises early, outside jit, when the GPU backend is forced but unavailable
+        pipeline.resolve_backend(self)  # raises early, outside jit, when a forced backend is unavailable
         return pipeline.intersect(self, rays, structure)
 
 
@@ -372,10 +374,11 @@ def _check_motion(intersector: Intersector, structure: Any) -> None:
 def _check_geometry(intersector: Intersector, structure: Any) -> None:
     """The structure's kinds, curves and user functions against the intersector's declarations."""
     prims = primitive_structures(structure)
-    if intersector.backend == "gpu":
+    if intersector.backend in ("gpu", "cpu"):
         reason = pipeline.kernel_declines(intersector, tuple(g for s in prims for g in s.geometry_info))
         if reason:
-            raise ValueError(f"Intersector: backend='gpu' cannot run: {reason}")
+            also = " (nor by the CPU traversal, which covers the same cases)" if intersector.backend == "cpu" else ""
+            raise ValueError(f"Intersector: backend={intersector.backend!r} cannot run: {reason}{also}")
     _check_user_functions(intersector, prims)
     _check_opacity_options(intersector, structure)
     if intersector.has("primitive_data") and all(s.leaf_primitive_data is None for s in prims):

@@ -1,9 +1,12 @@
-"""The intersection pipeline: rays -> scene view -> traversal (GPU kernel or portable) -> result fields.
+"""The intersection pipeline: rays -> scene view -> traversal (GPU kernel, CPU traversal or portable) ->
+result fields.
 
-One path for every structure: a primitive structure is a scene with zero instance levels. The traversal is
-the GPU kernel where :func:`kernel_declines` finds nothing it lacks and the default backend is a GPU, else the
-portable stack traversal (:mod:`jaxrt._src.traversal.drivers`) with the leaf tests of
-:mod:`jaxrt._src.leaves`; both return the same :class:`~jaxrt._src.traversal.scene.TraversalResult`.
+One path for every structure: a primitive structure is a scene with zero instance levels. Where
+:func:`kernel_declines` finds nothing the compiled traversals lack, the traversal is the GPU kernel
+(:mod:`jaxrt._src.traversal.gpu`) when the default backend is a GPU, or the Numba-compiled CPU traversal
+(:mod:`jaxrt._src.traversal.cpu`) when it is the CPU; else the portable stack traversal
+(:mod:`jaxrt._src.traversal.drivers`) with the leaf tests of :mod:`jaxrt._src.leaves`. All return the same
+:class:`~jaxrt._src.traversal.scene.TraversalResult`.
 """
 
 from __future__ import annotations
@@ -82,10 +85,14 @@ class SanitizedRays:
 
 
 def kernel_declines(intersector: Any, geometry_info: tuple) -> str | None:
-    """Why the GPU kernel does not cover a scene of these geometries with this intersector (``None``: it does).
+    """Why the compiled traversals (the GPU kernel, the CPU traversal) do not cover a scene of these geometries
+    with this intersector (``None``: they do).
 
-    The one place that decides the kernel's coverage (with :func:`jaxrt._src.traversal.gpu.unavailable_reason`
-    for the machine and the tags).
+    The one place that decides their coverage (with :func:`jaxrt._src.traversal.gpu.unavailable_reason` and
+    :func:`jaxrt._src.traversal.cpu.unavailable_reason` for the machine and the tags). The reasons name the GPU
+    kernel; the CPU traversal covers the same cases. Declined scenes take the portable traversal: curves,
+    bounding boxes with intersection functions and filters call JAX code per candidate, and the hit lists of
+    ``max_hits`` and counting are not in the compiled loops.
     """
     kinds = {g.kind for g in geometry_info}
     if "curve" in kinds:
@@ -102,17 +109,23 @@ def kernel_declines(intersector: Any, geometry_info: tuple) -> str | None:
 
 
 def resolve_backend(intersector: Any) -> str:
-    """``"portable"`` or ``"gpu"``: which traversal runs for this intersector on the default JAX backend."""
+    """``"portable"``, ``"gpu"`` or ``"cpu"``: which traversal runs for this intersector on the default JAX
+    backend (a forced ``"gpu"`` or ``"cpu"`` that cannot run raises ``ValueError``)."""
     if intersector.backend == "portable":
         return "portable"
-    from jaxrt._src.traversal import gpu
+    from jaxrt._src.traversal import cpu, gpu
 
+    if intersector.backend == "cpu":
+        reason = cpu.unavailable_reason(intersector)
+        if reason is not None:
+            raise ValueError(f"Intersector: backend='cpu' cannot run: {reason}")
+        return "cpu"
     reason = gpu.unavailable_reason(intersector)
     if reason is None:
         return "gpu"
     if intersector.backend == "gpu":
         raise ValueError(f"Intersector: backend='gpu' cannot run: {reason}")
-    return "portable"
+    return "cpu" if cpu.unavailable_reason(intersector) is None else "portable"
 
 
 def _chunked(fn, args, chunk: int):
@@ -153,12 +166,25 @@ def _trace_portable(intersector: Any, view: SceneView, rays: SanitizedRays) -> T
 
 
 def trace(intersector: Any, view: SceneView, rays: SanitizedRays) -> TraversalResult:
-    """Run the traversal the intersector and scene call for (the GPU kernel where it covers them)."""
+    """Run the traversal the intersector and scene call for (a compiled one where it covers them)."""
+    backend = resolve_backend(intersector)
     covered = kernel_declines(intersector, view.geometry_info) is None and not view.layout.motion
-    if resolve_backend(intersector) == "gpu" and covered:
+    detached = lax.stop_gradient
+    if backend == "cpu" and covered and view.traversal.node_lower.dtype == rays.origin.dtype:
+        from jaxrt._src.traversal import cpu
+
+        return cpu.trace_scene(
+            jax.tree_util.tree_map(detached, view.traversal),
+            view.layout,
+            *(detached(a) for a in (rays.origin, rays.direction, rays.t_min, rays.t_max)),
+            rays.enabled,
+            rays.mask,
+            any_hit=intersector.accept_any_intersection,
+            cull=intersector.cull,
+        )
+    if backend == "gpu" and covered:
         from jaxrt._src.traversal import gpu
 
-        detached = lax.stop_gradient
         return gpu.trace_scene(
             jax.tree_util.tree_map(detached, view.traversal),
             view.layout,

@@ -50,7 +50,15 @@ def _parser() -> argparse.ArgumentParser:
         help="float64 reference: 'numpy' (an independent NumPy BVH tracer) or 'jaxrt-x64' (jaxrt under x64)",
     )
     parser.add_argument(
-        "--backend", choices=["auto", "portable", "gpu"], default="auto", help="jaxrt intersector backend"
+        "--backend",
+        choices=["auto", "portable", "gpu", "cpu"],
+        default="auto",
+        help="jaxrt intersector backend (auto: the GPU kernel on a GPU, the compiled CPU traversal on the CPU)",
+    )
+    parser.add_argument(
+        "--also-portable",
+        action="store_true",
+        help="also time the portable traversal on the same rays (the 'portable' rows)",
     )
     parser.add_argument("--no-embree", action="store_true", help="skip the Embree peer")
     parser.add_argument("--data-dir", help="shared mesh folder (default: $JAXRT_DATA_DIR or ../shared/data)")
@@ -88,9 +96,18 @@ def parse_args(argv: Sequence[str] | None = None) -> BenchConfig:
         ray_kinds=tuple(args.ray_sets),
         embree=not args.no_embree,
         backend=args.backend,
+        also_portable=args.also_portable,
         seed=args.seed,
         data_dir=args.data_dir,
     )
+
+
+def _resolved(backend: str) -> str:
+    """The traversal the ``backend`` option runs here (``"gpu"``, ``"cpu"`` or ``"portable"``)."""
+    import jaxrt as rt
+    from jaxrt._src.pipeline import resolve_backend
+
+    return resolve_backend(rt.Intersector(backend=backend))
 
 
 def run(config: BenchConfig, *, verbose: bool = True) -> dict[str, Any]:
@@ -108,6 +125,8 @@ def run(config: BenchConfig, *, verbose: bool = True) -> dict[str, Any]:
             "reference": config.reference,
             "ray_sets": list(config.ray_kinds),
             "backend": config.backend,
+            "backend_resolved": _resolved(config.backend),
+            "also_portable": config.also_portable,
             "seed": config.seed,
         },
         "scenes": [],

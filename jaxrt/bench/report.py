@@ -136,7 +136,7 @@ def format_table(results: dict[str, Any]) -> str:
             for name, tracer in entry["tracers"].items():
                 error = tracer["error"]
                 compile_s = "-"
-                if name == "jaxrt":
+                if name in ("jaxrt", "portable"):
                     compile_s = f"{tracer['closest']['compile_s']:.1f}/{tracer['any_hit']['compile_s']:.1f}"
                 lines.append(
                     f"{scene['scene']:<8} {kind:<8} {name:<7} {tracer['closest']['mrays_s']:9.3f} "

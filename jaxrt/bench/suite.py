@@ -40,6 +40,7 @@ class BenchConfig:
     ray_kinds: tuple[str, ...] = ("primary", "diffuse")
     embree: bool = True
     backend: str = "auto"
+    also_portable: bool = False
     seed: int = 0
     data_dir: str | None = None
 
@@ -64,6 +65,10 @@ def bench_scene(scene: Scene, config: BenchConfig, *, verbose: bool = False) -> 
     timing, _ = timed(jaxrt.build, config.build_repeats)
     record["build"]["jaxrt"] = timing.as_dict(count, "mprims_s")
     _log(verbose, f"  jaxrt build {timing.median_s * 1e3:.1f} ms (first call {timing.first_s:.2f} s)")
+    portable = None
+    if config.also_portable and config.backend != "portable":
+        portable = Jaxrt(scene.vertices, scene.indices, backend="portable")
+        portable.structure = jaxrt.structure  # the same tree: only the traversal differs
     embree = None
     if config.embree:
         reason = embree_unavailable_reason()
@@ -104,6 +109,15 @@ def bench_scene(scene: Scene, config: BenchConfig, *, verbose: bool = False) -> 
         occluded = Jaxrt.occluded(result)
         entry["tracers"]["jaxrt"] = _tracer_entry(scene, batch, subset, reference, closest, hits, occlusion, occluded)
         _log(verbose, f"  {kind}: jaxrt {closest.median_s:.2f} s closest, {occlusion.median_s:.2f} s any-hit")
+        if portable is not None:
+            closest, result = timed(functools.partial(portable.closest, device_rays), config.repeats)
+            hits = Jaxrt.hits(result)
+            occlusion, result = timed(functools.partial(portable.any_hit, device_rays), config.repeats)
+            occluded = Jaxrt.occluded(result)
+            entry["tracers"]["portable"] = _tracer_entry(
+                scene, batch, subset, reference, closest, hits, occlusion, occluded
+            )
+            _log(verbose, f"  {kind}: portable {closest.median_s:.2f} s closest, {occlusion.median_s:.2f} s any-hit")
 
         if embree is not None:
             closest, hits = timed(functools.partial(embree.closest, batch), config.repeats)

@@ -16,7 +16,7 @@ class Jaxrt:
     Args:
       vertices: ``(V, 3)`` float32.
       indices: ``(T, 3)`` int32.
-      backend: the intersectors' ``backend`` option (``"auto"``, ``"portable"`` or ``"gpu"``).
+      backend: the intersectors' ``backend`` option (``"auto"``, ``"portable"``, ``"gpu"`` or ``"cpu"``).
     """
 
     name = "jaxrt"

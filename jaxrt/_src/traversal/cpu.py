@@ -1,0 +1,236 @@
+"""CPU traversal: a Numba-compiled stack traversal called through ``jax.pure_callback``, behind the same contract
+as the portable traversal.
+
+:func:`trace_scene` traces a :class:`~jaxrt._src.traversal.scene.TraversalScene` (any number of instance
+levels) and returns the :class:`~jaxrt._src.traversal.scene.TraversalResult` of the portable traversal: the same
+leaf, distance, instance chain and stats counters, decided with the same float operations
+(:mod:`jaxrt._src.traversal.cpu_kernel` says how). Rays are traced in parallel over the machine's cores
+(:func:`threads`): the compiled loop releases the GIL, and a thread pool runs ranges of rays.
+
+The intersector picks this path (``backend="auto"`` or ``"cpu"``) when :func:`unavailable_reason` returns
+``None`` (the default JAX backend is the CPU and Numba imports) and
+:func:`jaxrt._src.pipeline.kernel_declines` finds the scene and intersector covered: triangles, flat or
+instanced at any depth, nearest and any hit, cull modes and windings, ray intervals, ray and instance masks,
+disabled rays and the stats counters, in float32 or float64.
+
+Composition:
+  - ``jax.jit``: the traversal is one host callback; Numba compiles once per dtype (not per shape), and
+    ``cache=True`` keeps the machine code on disk for later processes.
+  - ``jax.vmap``: the callback's ``vmap_method="expand_dims"`` hands it the batch axes; rays batched over one
+    scene are traced in one parallel call, batches of scenes one scene after another.
+  - ``jax.grad``: the inputs are detached; the intersector re-computes the hit differentiably in JAX.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from jaxrt._src import numerics
+from jaxrt._src.primitives import box
+from jaxrt._src.traversal.scene import TraversalLayout, TraversalResult, TraversalScene
+
+__all__ = ["constants", "trace_scene", "unavailable_reason"]
+
+#: Base ranks of the callback's arguments (scene arrays, then rays); leading axes beyond them are vmap axes.
+_SCENE_RANKS = (3, 3, 2, 3, 3, 1, 1, 1)
+_RAY_RANKS = (2, 2, 1, 1, 1, 1)
+#: Positions of the float arguments (scene geometry and rays).
+_FLOAT_ARGS = (0, 1, 3, 4, 8, 9, 10, 11)
+#: Tasks per thread (rays cost unevenly: small tasks keep every thread busy to the end).
+TASKS_PER_THREAD = 16
+#: Fewest rays per task worth a thread.
+MIN_TASK = 64
+
+
+def threads() -> int:
+    """Threads the CPU traversal uses: the cores this process may run on (``JAXRT_CPU_THREADS`` overrides)."""
+    value = os.environ.get("JAXRT_CPU_THREADS")
+    if value:
+        if not value.strip().isdigit() or int(value) < 1:
+            raise ValueError(f"traversal.cpu: JAXRT_CPU_THREADS must be a positive integer, got {value!r}")
+        return int(value)
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+@functools.cache
+def _pool_of(workers: int) -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(workers, thread_name_prefix="jaxrt-cpu")
+
+
+def _pool() -> ThreadPoolExecutor:
+    return _pool_of(threads())
+
+
+@functools.lru_cache(maxsize=1)
+def _import_error() -> str | None:
+    try:
+        import numba  # noqa: F401
+    except ImportError as error:  # pragma: no cover - depends on the install
+        return f"Numba cannot be imported ({error}); install numba>=0.61"
+    return None
+
+
+def unavailable_reason(intersector: Any = None) -> str | None:
+    """Why the CPU traversal cannot run here, or ``None`` when it can."""
+    del intersector  # the scene-dependent rules are in :func:`jaxrt._src.pipeline.kernel_declines`
+    backend = jax.default_backend()
+    if backend != "cpu":
+        return f"the default JAX backend is {backend!r}; the CPU traversal runs on the CPU backend"
+    return _import_error()
+
+
+def constants(dtype: Any) -> np.ndarray:
+    """The float constants of the traversal in ``dtype``, rounded as the portable path rounds them."""
+    t = np.dtype(dtype).type
+    return np.array(
+        [
+            1.0,
+            0.0,
+            np.inf,
+            t(numerics.RECIPROCAL_CLAMP),  # |d| below it is clamped up to it
+            t(1.0 / numerics.RECIPROCAL_CLAMP),  # |d| above it is clamped down to sign / clamp
+            t(numerics.RECIPROCAL_CLAMP),
+            t(box.FAR_SCALE),
+            t(box.PARALLEL_RECIPROCAL),
+        ],
+        dtype,
+    )
+
+
+def _run(params: tuple, arrays: list[np.ndarray]) -> tuple[np.ndarray, ...]:
+    """Trace one scene's rays (flat ``(n, ...)`` arrays) with the compiled kernel."""
+    from jaxrt._src.traversal import cpu_kernel
+
+    arrays = [np.ascontiguousarray(a) for a in arrays]
+    origin = arrays[8]
+    n, levels = origin.shape[0], params[2]
+    dtype = origin.dtype
+    out = (
+        np.empty(n, dtype),
+        np.empty(n, np.int32),
+        np.empty((n, levels), np.int32),
+        np.empty(n, np.int32),
+        np.empty(n, np.int32),
+        np.empty(n, np.bool_),
+    )
+    consts, flags = constants(dtype), np.asarray(params, np.int64)
+    run = functools.partial(cpu_kernel.trace_rays, *arrays, consts, flags)
+    workers = threads()
+    tasks = min(n, workers * TASKS_PER_THREAD) if n >= workers * MIN_TASK else 1
+    bounds = [n * k // tasks for k in range(tasks + 1)]
+    if tasks <= 1:
+        run(0, n, *out)
+    else:  # the kernel releases the GIL: ranges run in parallel, small tasks balance uneven rays
+        list(_pool().map(lambda k: run(bounds[k], bounds[k + 1], *out), range(tasks)))
+    return out
+
+
+def _host(params: tuple, wide: bool, *args: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The callback: ``args`` may carry leading vmap axes (size 1 where an argument is not batched).
+
+    Float64 arrays travel both ways as pairs of uint32 words (``wide``): JAX converts a callback's float64
+    arguments and results to float32 when the thread that runs it has ``jax_enable_x64`` off
+    (``jax.enable_x64`` is a per-thread setting).
+    """
+    if wide:
+        args = tuple(
+            np.ascontiguousarray(a).view(np.float64)[..., 0] if i in _FLOAT_ARGS else a for i, a in enumerate(args)
+        )
+    out = _host_arrays(params, *args)
+    distance = out[0]
+    if wide:
+        distance = distance.view(np.uint32).reshape(*distance.shape, 2)
+    return (distance, *out[1:])
+
+
+def _host_arrays(params: tuple, *args: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The traversal's outputs for callback arguments with leading vmap axes."""
+    ranks = _SCENE_RANKS + _RAY_RANKS
+    args = [np.asarray(a) for a in args]
+    lead = [a.shape[: a.ndim - r] for a, r in zip(args, ranks, strict=True)]
+    batch = np.broadcast_shapes(*lead)
+    if not batch:
+        return _run(params, args)
+    scenes = int(np.prod(np.broadcast_shapes(*lead[:8]), dtype=np.int64))
+    if scenes == 1:  # rays batched over one scene: one parallel call over all of them
+        scene = [a.reshape(a.shape[a.ndim - r :]) for a, r in zip(args[:8], _SCENE_RANKS, strict=True)]
+        rays = [np.broadcast_to(a, batch + a.shape[a.ndim - r :]) for a, r in zip(args[8:], _RAY_RANKS, strict=True)]
+        n = rays[0].shape[-2]
+        out = _run(params, scene + [a.reshape(-1, *a.shape[len(batch) + 1 :]) for a in rays])
+        return tuple(a.reshape(*batch, n, *a.shape[1:]) for a in out)
+    full = [np.broadcast_to(a, batch + a.shape[a.ndim - r :]) for a, r in zip(args, ranks, strict=True)]
+    results = [_run(params, [a[index] for a in full]) for index in np.ndindex(*batch)]
+    return tuple(np.stack(parts).reshape(*batch, *parts[0].shape) for parts in zip(*results, strict=True))
+
+
+def trace_scene(
+    scene: TraversalScene,
+    layout: TraversalLayout,
+    origin: jax.Array,
+    direction: jax.Array,
+    t_min: jax.Array,
+    t_max: jax.Array,
+    enabled: jax.Array,
+    mask: jax.Array,
+    *,
+    any_hit: bool,
+    cull: int,
+) -> TraversalResult:
+    """Trace rays through a scene of any instance depth with the compiled CPU traversal.
+
+    Args:
+      scene: the global node arrays (:func:`jaxrt._src.scene_view.traversal_scene`), float32 or float64; the
+        rays must have the same float dtype.
+      layout: its static layout (root, primitive leaves, levels, stack size).
+      origin, direction: ``(N, 3)`` world-space rays; a disabled ray must still have a non-zero direction.
+      t_min, t_max: ``(N,)`` accepted distance interval (world units at every level).
+      enabled: ``(N,)`` bool; disabled rays miss (distance ``-inf``) and take no step.
+      mask: ``(N,)`` uint32 ray masks; an instance is entered only where ``instance_mask & mask != 0``.
+      any_hit: stop at the first accepted hit.
+      cull: 0 culls nothing, +1 clockwise triangles, -1 counterclockwise ones; below instances the sense is
+        multiplied by the chain's ``instance_facing``.
+
+    Returns:
+      The portable traversal's :class:`~jaxrt._src.traversal.scene.TraversalResult`.
+    """
+    dtype = scene.node_lower.dtype
+    if origin.dtype != dtype:
+        raise ValueError(f"traversal.cpu.trace_scene: rays are {origin.dtype} but the scene is {dtype}")
+    levels = int(layout.levels)
+    params = (int(layout.root), int(layout.primitive_leaves), levels, int(layout.stack_size), int(bool(any_hit)), int(cull))  # fmt: skip
+    detached = lax.stop_gradient
+    wide = jnp.dtype(dtype).itemsize == 8
+    words = lambda a: lax.bitcast_convert_type(detached(a).astype(dtype), jnp.uint32) if wide else detached(a)  # noqa: E731
+    args = (
+        words(scene.node_lower),
+        words(scene.node_upper),
+        scene.node_children.astype(jnp.int32),
+        words(scene.leaf_triangle),
+        words(scene.instance_world_to_object),
+        scene.instance_child_root.astype(jnp.int32),
+        scene.instance_facing.astype(jnp.int32),
+        scene.instance_mask.astype(jnp.uint32),
+        *(words(a) for a in (origin, direction, t_min, t_max)),
+        enabled.astype(bool),
+        mask.astype(jnp.uint32),
+    )
+    n = origin.shape[0]
+    shapes = (
+        jax.ShapeDtypeStruct((n, 2), jnp.uint32) if wide else jax.ShapeDtypeStruct((n,), dtype),
+        jax.ShapeDtypeStruct((n,), jnp.int32),
+        jax.ShapeDtypeStruct((n, levels), jnp.int32),
+        jax.ShapeDtypeStruct((n,), jnp.int32),
+        jax.ShapeDtypeStruct((n,), jnp.int32),
+        jax.ShapeDtypeStruct((n,), jnp.bool_),
+    )
+    out = jax.pure_callback(functools.partial(_host, params, wide), shapes, *args, vmap_method="expand_dims")
+    distance = lax.bitcast_convert_type(out[0], dtype) if wide else out[0]
+    return TraversalResult(distance, *out[1:])

@@ -1,0 +1,341 @@
+"""The CPU traversal compiled with Numba: one ray at a time per thread, the portable step's decisions exactly.
+
+Imported only by :mod:`jaxrt._src.traversal.cpu`, and only when a CPU trace runs (Numba compiles on first
+use; ``cache=True`` keeps the machine code on disk for later processes).
+
+Each ray runs the loop of :mod:`jaxrt._src.traversal.step` sequentially: one internal node per iteration, both
+child boxes with the conservative slab test (Ize 2013), the primitives of leaf children tested on sight with the
+watertight test (Woop, Benthin, Wald 2013), the nearer inner child entered and the farther one pushed, and the
+instance transition (ray moved by the instance's world-to-object rows, facing multiplied along the chain).
+
+Same decisions to the bit: every value the portable path compares is computed here with the same float
+operations, in the same order and precision (the geometry's dtype). Two details make that hold:
+
+- XLA's CPU backend contracts a multiply feeding an add into one fused multiply-add. Where the portable path's
+  expressions are contracted (the sheared vertex coordinates ``p - s * z``, and the scaled distance
+  ``e0 z0 + e1 z1 + e2 z2``), this module calls ``llvm.fma`` explicitly; elsewhere it leaves products
+  unfused (Numba does not contract: ``fastmath=False``).
+- The edge functions' products are rounded to one mantissa bit less than the float has, as
+  :func:`jaxrt._src.primitives.triangle._product` does with ``lax.reduce_precision`` (round to nearest even,
+  NaN kept), so that no fused multiply-add can change an edge function's sign.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+from llvmlite import ir
+from numba.extending import intrinsic
+
+__all__ = ["trace_rays"]
+
+
+@intrinsic
+def _fma(typingctx, a, b, c):
+    """``a * b + c`` rounded once (``llvm.fma``)."""
+    sig = a(a, a, a)
+
+    def codegen(context, builder, signature, args):
+        ty = args[0].type
+        name = "llvm.fma.f32" if ty == ir.FloatType() else "llvm.fma.f64"
+        fn = builder.module.declare_intrinsic(name, [ty], ir.FunctionType(ty, [ty, ty, ty]))
+        return builder.call(fn, args)
+
+    return sig, codegen
+
+
+@intrinsic
+def _rounded_product(typingctx, a, b):
+    """``a * b`` rounded to one mantissa bit less, to nearest even (XLA's ``reduce_precision``); NaN kept."""
+    sig = a(a, a)
+
+    def codegen(context, builder, signature, args):
+        ty = args[0].type
+        bits = 32 if ty == ir.FloatType() else 64
+        it = ir.IntType(bits)
+        product = builder.fmul(args[0], args[1])
+        x = builder.bitcast(product, it)
+        last = builder.lshr(builder.and_(x, ir.Constant(it, 2)), ir.Constant(it, 1))
+        rounded = builder.and_(builder.add(x, last), ir.Constant(it, ~1 & ((1 << bits) - 1)))
+        out = builder.bitcast(rounded, ty)
+        is_nan = builder.fcmp_unordered("uno", product, product)
+        return builder.select(is_nan, product, out)
+
+    return sig, codegen
+
+
+@numba.njit(cache=True)
+def _reciprocal(x, clamp, huge, clamped_huge, one):
+    """:func:`jaxrt._src.numerics.safe_reciprocal` in the dtype of ``x``: ``huge`` is the dtype's ``1 / clamp``
+    threshold, and a component above it becomes ``sign / clamped_huge`` (``clamped_huge`` is ``clamp``)."""
+    sign = -one if np.signbit(x) else one
+    m = abs(x)
+    y = x
+    if m < clamp:
+        y = sign * clamp
+    if m > huge:
+        y = sign / clamped_huge
+    return one / y
+
+
+@numba.njit(cache=True)
+def _pick(k, a0, a1, a2):
+    return a0 if k == 0 else (a1 if k == 1 else a2)
+
+
+@numba.njit(cache=True)
+def _load(o0, o1, o2, d0, d1, d2, one, clamp, huge, clamped_huge):
+    """The loaded ray's constants: reciprocal direction, axes and shear (Woop et al. section 3)."""
+    i0 = _reciprocal(d0, clamp, huge, clamped_huge, one)
+    i1 = _reciprocal(d1, clamp, huge, clamped_huge, one)
+    i2 = _reciprocal(d2, clamp, huge, clamped_huge, one)
+    a0, a1, a2 = abs(d0), abs(d1), abs(d2)
+    if a0 >= a1:
+        kz = 0 if a0 >= a2 else 2
+    else:
+        kz = 1 if a1 >= a2 else 2
+    kx = (kz + 1) % 3
+    ky = (kx + 1) % 3
+    dz = _pick(kz, d0, d1, d2)
+    if dz < 0:
+        kx, ky = ky, kx
+    dz_safe = one if dz == 0 else dz
+    sx = _pick(kx, d0, d1, d2) / dz_safe
+    sy = _pick(ky, d0, d1, d2) / dz_safe
+    sz = one / dz_safe
+    return i0, i1, i2, kx, ky, kz, sx, sy, sz
+
+
+@numba.njit(cache=True)
+def _slab(o, inv, lo, hi, parallel, inf):
+    """One axis of the slab test: ``(near, far)``. A clamped (parallel) component keeps the ray at one
+    coordinate: all of the slab or none of it."""
+    if abs(inv) >= parallel:
+        inside = lo <= o and o <= hi
+        return (-inf, inf) if inside else (inf, -inf)
+    t0 = (lo - o) * inv
+    t1 = (hi - o) * inv
+    return min(t0, t1), max(t0, t1)
+
+
+@numba.njit(cache=True)
+def _box(lx, ly, lz, hx, hy, hz, o0, o1, o2, i0, i1, i2, t_min, t_max, far_scale, parallel, inf):
+    """The conservative slab test of a box (:func:`jaxrt._src.primitives.box.ray_box`): ``(hit, t_near)``."""
+    n0, f0 = _slab(o0, i0, lx, hx, parallel, inf)
+    n1, f1 = _slab(o1, i1, ly, hy, parallel, inf)
+    n2, f2 = _slab(o2, i2, lz, hz, parallel, inf)
+    t_near = max(max(max(n0, n1), n2), t_min)
+    t_far = min(min(min(f0, f1), f2) * far_scale, t_max)
+    return (t_near <= t_far) and (lx <= hx), t_near
+
+
+@numba.njit(cache=True)
+def _sheared(x, y, z, o0, o1, o2, kx, ky, kz, sx, sy, sz):
+    """A vertex relative to the origin, sheared: ``(px, py, z)``."""
+    r0, r1, r2 = x - o0, y - o1, z - o2
+    az = _pick(kz, r0, r1, r2)
+    # XLA contracts ``p - s * z`` into one fused multiply-add: so does this.
+    return _fma(-sx, az, _pick(kx, r0, r1, r2)), _fma(-sy, az, _pick(ky, r0, r1, r2)), sz * az
+
+
+@numba.njit(cache=True)
+def _triangle(v, o0, o1, o2, kx, ky, kz, sx, sy, sz, t_min, t_max, cull, inf):
+    """The watertight test (:func:`jaxrt._src.primitives.triangle.watertight`) of a triangle ``v`` (nine
+    coordinates) with a cull sense ``cull`` (+1 culls clockwise, -1 counterclockwise): ``(accepted, distance)``."""
+    ax, ay, z0 = _sheared(v[0], v[1], v[2], o0, o1, o2, kx, ky, kz, sx, sy, sz)
+    bx, by, z1 = _sheared(v[3], v[4], v[5], o0, o1, o2, kx, ky, kz, sx, sy, sz)
+    cx, cy, z2 = _sheared(v[6], v[7], v[8], o0, o1, o2, kx, ky, kz, sx, sy, sz)
+    e0 = _rounded_product(cx, by) - _rounded_product(cy, bx)
+    e1 = _rounded_product(ax, cy) - _rounded_product(ay, cx)
+    e2 = _rounded_product(bx, ay) - _rounded_product(by, ax)
+    negative = e0 < 0 or e1 < 0 or e2 < 0
+    positive = e0 > 0 or e1 > 0 or e2 > 0
+    det = e0 + e1 + e2
+    if (negative and positive) or det == 0:
+        return False, inf
+    clockwise = det < 0
+    if (cull > 0 and clockwise) or (cull < 0 and not clockwise):
+        return False, inf
+    # XLA contracts e0 z0 + e1 z1 + e2 z2 into fma(e2, z2, fma(e0, z0, e1 z1)): so does this.
+    t = _fma(e2, z2, _fma(e0, z0, e1 * z1)) / det
+    if t >= t_min and t <= t_max:
+        return True, t
+    return False, inf
+
+
+@numba.njit(cache=True)
+def _row(m0, m1, m2, x0, x1, x2):
+    """``m0 x0 + m1 x1 + m2 x2`` as XLA's CPU backend sums a row of the transform in the portable transition:
+    a reduction whose multiply-adds are contracted, ``fma(m2, x2, fma(m1, x1, m0 x0))``."""
+    return _fma(m2, x2, _fma(m1, x1, m0 * x0))
+
+
+@numba.njit(nogil=True, cache=True)
+def trace_rays(
+    node_lower, node_upper, node_children, leaf_triangle, world_to_object, child_root, instance_facing,
+    instance_mask, origin, direction, t_min_all, t_max_all, enabled, mask_all, consts, params, begin, end, out_distance,
+    out_leaf, out_chain, out_visited, out_tested, out_overflow,
+):  # fmt: skip
+    """Trace rays ``begin`` to ``end``; results go to the ``out_*`` arrays (without the GIL: the caller runs
+    disjoint ranges on several threads).
+
+    ``params`` holds ``root, primitive_leaves, levels, stack_size, any_hit, cull``; ``consts`` the float
+    constants in the geometry's dtype (:func:`jaxrt._src.traversal.cpu.constants`).
+    """
+    root, primitive_leaves, levels, stack_size, any_hit, cull = params[0], params[1], params[2], params[3], params[4] != 0, params[5]  # fmt: skip
+    stack = np.empty(max(stack_size, 1), np.int32)
+    base = np.zeros(max(levels, 1), np.int32)
+    chain = np.full(max(levels, 1), -1, np.int32)
+    level_ray = np.zeros((max(levels, 1), 6), consts.dtype)
+    level_facing = np.ones(max(levels, 1), np.int32)
+    hit_chain = np.full(max(levels, 1), -1, np.int32)
+    one, inf, clamp, huge, clamped_huge = consts[0], consts[2], consts[3], consts[4], consts[5]
+    far_scale, parallel = consts[6], consts[7]
+    instances = child_root.shape[0]
+    for i in range(begin, end):
+        if not enabled[i]:
+            out_distance[i] = -inf
+            out_leaf[i] = -1
+            for j in range(levels):
+                out_chain[i, j] = -1
+            out_visited[i] = 0
+            out_tested[i] = 0
+            out_overflow[i] = False
+            continue
+        t_min = t_min_all[i]
+        distance = t_max_all[i]
+        ray_mask = mask_all[i]
+        leaf = -1
+        o0, o1, o2 = origin[i, 0], origin[i, 1], origin[i, 2]
+        i0, i1, i2, kx, ky, kz, sx, sy, sz = _load(o0, o1, o2, direction[i, 0], direction[i, 1], direction[i, 2], one, clamp, huge, clamped_huge)  # fmt: skip
+        facing = 1
+        node = root
+        depth = 0
+        level = 0
+        ray_level = 0
+        visited = 0
+        tested = 0
+        overflow = False
+        for j in range(levels):
+            hit_chain[j] = -1
+        while True:
+            visited += 1
+            c0 = node_children[node, 0]
+            c1 = node_children[node, 1]
+            lo, hi = node_lower, node_upper
+            hit0, near0 = _box(lo[node, 0, 0], lo[node, 0, 1], lo[node, 0, 2], hi[node, 0, 0], hi[node, 0, 1], hi[node, 0, 2], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
+            hit1, near1 = _box(lo[node, 1, 0], lo[node, 1, 1], lo[node, 1, 2], hi[node, 1, 0], hi[node, 1, 1], hi[node, 1, 2], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
+            # Leaf children: primitives are tested now, instances are entered like inner children (when visible).
+            k0 = -1 - c0
+            k1 = -1 - c1
+            inner0 = hit0 and c0 >= 0
+            inner1 = hit1 and c1 >= 0
+            e0 = c0
+            e1 = c1
+            ok0 = False
+            ok1 = False
+            t0 = inf
+            t1 = inf
+            sense = cull * facing
+            if c0 < 0:
+                if k0 < primitive_leaves:
+                    if hit0:
+                        tested += 1
+                        t = leaf_triangle
+                        v = (t[k0, 0, 0], t[k0, 0, 1], t[k0, 0, 2], t[k0, 1, 0], t[k0, 1, 1], t[k0, 1, 2], t[k0, 2, 0], t[k0, 2, 1], t[k0, 2, 2])  # fmt: skip
+                        ok0, t0 = _triangle(v, o0, o1, o2, kx, ky, kz, sx, sy, sz, t_min, distance, sense, inf)  # fmt: skip
+                else:
+                    g = min(max(k0 - primitive_leaves, 0), instances - 1)
+                    e0 = -1 - g
+                    inner0 = hit0 and (instance_mask[g] & ray_mask) != 0
+            if c1 < 0:
+                if k1 < primitive_leaves:
+                    if hit1:
+                        tested += 1
+                        t = leaf_triangle
+                        v = (t[k1, 0, 0], t[k1, 0, 1], t[k1, 0, 2], t[k1, 1, 0], t[k1, 1, 1], t[k1, 1, 2], t[k1, 2, 0], t[k1, 2, 1], t[k1, 2, 2])  # fmt: skip
+                        ok1, t1 = _triangle(v, o0, o1, o2, kx, ky, kz, sx, sy, sz, t_min, distance, sense, inf)  # fmt: skip
+                else:
+                    g = min(max(k1 - primitive_leaves, 0), instances - 1)
+                    e1 = -1 - g
+                    inner1 = hit1 and (instance_mask[g] & ray_mask) != 0
+            if ok0 or ok1:
+                if t1 < t0:
+                    best_t, best_leaf = t1, k1
+                else:
+                    best_t, best_leaf = t0, k0
+                # Strictly nearer than the current hit; the first hit may lie exactly at t_max (closed interval).
+                if best_t < distance or (leaf < 0 and best_t <= distance):
+                    distance = best_t
+                    leaf = best_leaf
+                    for j in range(levels):
+                        hit_chain[j] = chain[j] if j < level else -1
+            finished = False
+            if inner0 and inner1:
+                if near0 <= near1:
+                    near, far = e0, e1
+                else:
+                    near, far = e1, e0
+                if depth < stack_size:
+                    stack[depth] = far
+                    depth += 1
+                else:
+                    overflow = True
+                node = near
+            elif inner0:
+                node = e0
+            elif inner1:
+                node = e1
+            elif depth == 0:
+                finished = True
+            else:
+                depth -= 1
+                node = stack[depth]
+                # The level of a popped entry: the deepest entered level whose stack base is at or below it.
+                top = 0
+                for j in range(level):
+                    if base[j] <= depth:
+                        top += 1
+                level = top
+            if finished or (any_hit and leaf >= 0):
+                break
+            if levels and (node < 0 or level != ray_level):
+                # Load the ray of the entry's level and enter the instance, if the entry is one.
+                if level == 0:
+                    b0, b1, b2 = origin[i, 0], origin[i, 1], origin[i, 2]
+                    d0, d1, d2 = direction[i, 0], direction[i, 1], direction[i, 2]
+                    base_facing = 1
+                else:
+                    b0, b1, b2 = level_ray[level - 1, 0], level_ray[level - 1, 1], level_ray[level - 1, 2]
+                    d0, d1, d2 = level_ray[level - 1, 3], level_ray[level - 1, 4], level_ray[level - 1, 5]
+                    base_facing = level_facing[level - 1]
+                facing = base_facing
+                if node < 0:
+                    g = min(max(-1 - node, 0), instances - 1)
+                    m = world_to_object
+                    # Row by row, as the portable transition sums them.
+                    n0 = _row(m[g, 0, 0], m[g, 0, 1], m[g, 0, 2], b0, b1, b2) + m[g, 0, 3]
+                    n1 = _row(m[g, 1, 0], m[g, 1, 1], m[g, 1, 2], b0, b1, b2) + m[g, 1, 3]
+                    n2 = _row(m[g, 2, 0], m[g, 2, 1], m[g, 2, 2], b0, b1, b2) + m[g, 2, 3]
+                    v0 = _row(m[g, 0, 0], m[g, 0, 1], m[g, 0, 2], d0, d1, d2)
+                    v1 = _row(m[g, 1, 0], m[g, 1, 1], m[g, 1, 2], d0, d1, d2)
+                    v2 = _row(m[g, 2, 0], m[g, 2, 1], m[g, 2, 2], d0, d1, d2)
+                    facing = base_facing * instance_facing[g]
+                    level_ray[level, 0], level_ray[level, 1], level_ray[level, 2] = n0, n1, n2
+                    level_ray[level, 3], level_ray[level, 4], level_ray[level, 5] = v0, v1, v2
+                    level_facing[level] = facing
+                    base[level] = depth
+                    chain[level] = g
+                    b0, b1, b2, d0, d1, d2 = n0, n1, n2, v0, v1, v2
+                    node = child_root[g]
+                    level += 1
+                ray_level = level
+                o0, o1, o2 = b0, b1, b2
+                i0, i1, i2, kx, ky, kz, sx, sy, sz = _load(b0, b1, b2, d0, d1, d2, one, clamp, huge, clamped_huge)
+        out_distance[i] = distance
+        out_leaf[i] = leaf
+        for j in range(levels):
+            out_chain[i, j] = hit_chain[j]
+        out_visited[i] = visited
+        out_tested[i] = tested
+        out_overflow[i] = overflow

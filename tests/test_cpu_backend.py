@@ -1,0 +1,311 @@
+"""The compiled CPU traversal (``backend="cpu"``, the default on the CPU) against the portable traversal and
+the float64 brute force.
+
+The CPU traversal must make the portable traversal's decisions exactly: the same hit or miss, the same
+primitive, the same distance to the bit, the same instance chain and the same stats counters, on the hard cases
+(closed meshes far from the origin hit through vertices and edges, exact axis-parallel rays, degenerate
+triangles, disabled rays), on instanced scenes (two levels, masks, mirrored transforms, culling) and on random
+scenes. Every test traces batches of one size through one scene capacity, so each intersector compiles once.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from reference import (
+    SMALL_CAPACITY,
+    assert_matches_reference,
+    brute_force,
+    cube,
+    edges,
+    grid,
+    icosphere,
+    trace,
+)
+from scenes import far_exponents, random_rays, random_scene, scale_exponents, seeds
+from test_instancing import aimed_rays, flatten
+from test_instancing import random_scene as random_instanced_scene
+
+import jaxrt as rt
+from jaxrt._src import pipeline
+from jaxrt._src.traversal import cpu
+
+pytestmark = pytest.mark.skipif(cpu.unavailable_reason() is not None, reason=str(cpu.unavailable_reason()))
+
+FAR = np.array([148376.0, 1234.0, -223423.0])
+FIELDS = ("type", "distance", "primitive_id", "geometry_id", "triangle_barycentric_coord", "triangle_front_facing")
+STATS = ("nodes_visited", "primitives_tested", "stack_overflow")
+
+
+def _pair(*tags, **options) -> tuple[rt.Intersector, rt.Intersector]:
+    """The same intersector on the portable traversal and on the CPU traversal."""
+    return rt.Intersector(*tags, backend="portable", **options), rt.Intersector(*tags, backend="cpu", **options)
+
+
+NEAREST = _pair(rt.tags.triangle_data, rt.tags.stats)
+ANY_CULLED = _pair(
+    rt.tags.triangle_data,
+    rt.tags.stats,
+    accept_any_intersection=True,
+    triangle_cull_mode="front",
+    front_facing_winding="counterclockwise",
+)
+INSTANCED = _pair(rt.tags.instancing, rt.tags.max_levels(2), rt.tags.triangle_data, rt.tags.stats)
+INSTANCED_ANY = _pair(
+    rt.tags.instancing, rt.tags.max_levels(2), rt.tags.triangle_data, accept_any_intersection=True,
+    triangle_cull_mode="back",
+)  # fmt: skip
+
+
+def _assert_same(pair, structure, origin, direction, min_distance=0.0, max_distance=np.inf, mask=0xFFFFFFFF):
+    """Trace with both backends (fixed batches, see ``reference.trace``) and require identical fields."""
+    portable, compiled = (trace(i, structure, origin, direction, min_distance, max_distance, mask) for i in pair)
+    names = [k for k in portable if k in FIELDS + STATS or k in ("instance_id", "instance_count")]
+    assert names
+    for name in names:
+        np.testing.assert_array_equal(np.asarray(compiled[name]), np.asarray(portable[name]), err_msg=name)
+    return compiled
+
+
+def _build(vertices, indices=None):
+    vertices = np.asarray(vertices, np.float32)
+    return rt.build_primitive_structure(rt.TriangleGeometry(vertices, indices), capacity=SMALL_CAPACITY)
+
+
+# --- hard cases -------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("pair", [NEAREST, ANY_CULLED], ids=["nearest", "any-culled"])
+def test_closed_mesh_far_from_the_origin_through_vertices_and_edges(pair):
+    v, f = icosphere(1)
+    vertices = (v * [40.0, 25.0, 15.0] + FAR).astype(np.float32)
+    structure = _build(vertices, f)
+    v64 = vertices.astype(np.float64)
+    targets = np.concatenate([v64, v64[edges(f)].mean(axis=1)])
+    for origin in (FAR, FAR + [4.0, -5.0, 2.25], FAR + [90.0, 10.0, -60.0]):
+        origin = origin.astype(np.float32)
+        direction = (targets - origin.astype(np.float64)).astype(np.float32)
+        result = _assert_same(pair, structure, origin, direction)
+        if pair is NEAREST and np.array_equal(origin, FAR.astype(np.float32)):
+            assert (np.asarray(result.type) != 0).all(), "a ray from inside leaked"
+
+
+@pytest.mark.parametrize("offset", [(0.0, 0.0, 0.0), (131072.0, 4096.0, -65536.0)])
+def test_exact_axis_parallel_rays_through_grid_vertices_and_edges(offset):
+    v, f = grid(8, 8)
+    vertices = (v * 4 + offset).astype(np.float32)
+    structure = _build(vertices, f)
+    v64 = vertices.astype(np.float64)
+    targets = np.concatenate([v64, v64[edges(f)].mean(axis=1)])
+    for sign in (1.0, -1.0):
+        direction = np.broadcast_to([0.0, 0.0, -sign], targets.shape)
+        result = _assert_same(NEAREST, structure, targets + [0.0, 0.0, 5.0 * sign], direction)
+        assert (np.asarray(result.type) != 0).all()
+        _assert_same(ANY_CULLED, structure, targets + [0.0, 0.0, 5.0 * sign], direction)
+
+
+def test_axis_parallel_rays_in_box_face_planes():
+    s = 2.0
+    v, f = cube((-s, -s, -s), (s, s, s))
+    structure = _build((v + [65536.0, -32768.0, 1024.0]).astype(np.float32), f)
+    points = np.array([-s, -s / 2, 0.0, s / 2, s])
+    a, b = (x.ravel() for x in np.meshgrid(points, points))
+    for axis in range(3):
+        u, w = [i for i in range(3) if i != axis]
+        origin = np.zeros((a.size, 3))
+        origin[:, u], origin[:, w], origin[:, axis] = a, b, s + 3.0
+        direction = np.zeros_like(origin)
+        direction[:, axis] = -1.0
+        result = _assert_same(NEAREST, structure, origin + [65536.0, -32768.0, 1024.0], direction)
+        assert (np.asarray(result.type) != 0).all()
+
+
+def test_degenerate_triangles_and_disabled_rays():
+    point_like = np.array([[[1.0, 1, 1]] * 3, [[2.0, 0, 1], [2.0, 0, 1], [3.0, 1, 1]]])
+    collinear = np.array([[[0.0, 0, 1], [1.0, 1, 1], [2.0, 2, 1]], [[0.0, 3, 2], [0.0, 4, 2], [0.0, 5, 2]]])
+    wall = np.array([[[-9.0, -9, 5], [9, -9, 5], [0, 9, 5]]])
+    triangles = np.concatenate([point_like, collinear, wall]).astype(np.float32)
+    structure = _build(triangles.reshape(-1, 3))
+    rng = np.random.default_rng(5)
+    directions = np.concatenate([np.eye(3), -np.eye(3), rng.normal(size=(20, 3))])
+    points = np.concatenate([triangles.mean(1), triangles[:, 0], 0.25 * triangles[:, 1] + 0.75 * triangles[:, 2]])
+    origin = np.repeat(points, len(directions), 0) - 2 * np.tile(directions, (len(points), 1))
+    direction = np.tile(directions, (len(points), 1))
+    result = _assert_same(NEAREST, structure, origin, direction)
+    assert not np.isin(np.asarray(result.primitive_id), np.arange(4)).any()
+
+    nan, inf = np.nan, np.inf
+    cases = [  # origin, direction, min, max, mask: all but the first and last are disabled
+        ([0.25, 0.25, 1.0], [0.0, 0.0, 1.0], 0.0, inf, 1),
+        ([0.25, 0.25, 1.0], [0.0, 0.0, 1.0], 2.0, 1.0, 1),
+        ([0.25, 0.25, 1.0], [0.0, 0.0, 0.0], 0.0, inf, 1),
+        ([nan, 0.25, 1.0], [0.0, 0.0, 1.0], 0.0, inf, 1),
+        ([0.25, 0.25, 1.0], [0.0, nan, 1.0], 0.0, nan, 1),
+        ([0.25, inf, 1.0], [0.0, 0.0, 1.0], 0.0, inf, 1),
+        ([0.25, 0.25, 1.0], [0.0, 0.0, 1.0], 0.0, inf, 0),
+        ([0.25, 0.25, 1.0], [0.0, 0.0, 1.0], 4.0, 4.0, 1),
+    ]
+    origin, direction, tmin, tmax, mask = (np.array(c) for c in zip(*cases, strict=True))
+    for pair in (NEAREST, ANY_CULLED):
+        result = _assert_same(pair, structure, origin, direction, tmin, tmax, mask)
+        kind = np.asarray(result.type)
+        assert (kind[1:-1] == 0).all() and np.isinf(np.asarray(result.distance)[1:-1]).all()
+        assert (np.asarray(result.nodes_visited)[1:-1] == 0).all()
+    assert (np.asarray(_assert_same(NEAREST, structure, origin, direction, tmin, tmax, mask).type)[[0, -1]] != 0).all()
+
+
+# --- random scenes: the portable path, and the float64 brute force -----------------------------------------------
+
+
+@settings(max_examples=6)
+@given(seeds, far_exponents, scale_exponents)
+def test_random_scenes_equal_the_portable_path_and_match_brute_force(seed, far_exp, scale_exp):
+    scene = random_scene(seed, far_exp, scale_exp)
+    rays = random_rays(seed ^ 0x5EED, scene)
+    structure = rt.build_primitive_structure(scene.geometries, capacity=SMALL_CAPACITY)
+    args = (rays.origin, rays.direction, rays.min_distance, rays.max_distance)
+    result = _assert_same(NEAREST, structure, *args)
+    reference = brute_force(*args, scene.triangles)
+    assert_matches_reference(result, reference, scene.counts)
+    any_hit = _assert_same(ANY_CULLED, structure, *args)
+    culled = brute_force(*args, scene.triangles, cull="front", front_facing_winding="counterclockwise")
+    hit = np.asarray(any_hit.type) != 0
+    assert not (hit & ~culled.possible.any(axis=1)).any(), "an any-hit answer where no hit is possible"
+    assert not (~hit & culled.certain.any(axis=1)).any(), "an any-hit miss where a hit is certain"
+
+
+# --- instances --------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("kind", ["rigid", "mirrored"])
+def test_two_level_instances_with_masks_equal_the_portable_path(kind):
+    scene = random_instanced_scene(11, 2, kind, masks=True)
+    flat = flatten(scene)
+    origin, direction = aimed_rays(3, flat)
+    ray_mask = np.random.default_rng(4).choice([1, 2, 4, 8, 6, 0xFF, 0x100], len(origin)).astype(np.uint32)
+    result = _assert_same(INSTANCED, scene.structure, origin, direction, mask=ray_mask)
+    assert (np.asarray(result.type) != 0).any() and (np.asarray(result.instance_count) == 2).any()
+    _assert_same(INSTANCED, scene.structure, origin, direction)
+
+
+def test_culling_below_mirrored_instances_and_instance_options():
+    triangle = np.array([[0, 0, 0], [0, 1, 0], [1, 0, 0]], np.float32)
+    blas = rt.build_primitive_structure(rt.TriangleGeometry(triangle))
+    place = lambda x, mirror: np.array([[mirror, 0, 0, x], [0, 1, 0, 0], [0, 0, 1, 0]], np.float32)  # noqa: E731
+    transforms = np.stack([place(0, 1), place(10, -1), place(20, -1), place(30, 1)])
+    options = [
+        rt.InstanceOptions.NONE,
+        rt.InstanceOptions.NONE,
+        rt.InstanceOptions.DISABLE_TRIANGLE_CULLING,
+        rt.InstanceOptions.TRIANGLE_FRONT_FACING_WINDING_COUNTERCLOCKWISE,
+    ]
+    inner = rt.build_instance_structure([blas], rt.Instances([0, 0, 0, 0], transforms, options=options))
+    outer = rt.build_instance_structure([inner], rt.Instances([0, 0], np.stack([place(0, 1), place(0, -1)])))
+    xs = np.array([0.2, 9.8, 19.8, 30.2, -0.2, -9.8, -19.8, -30.2], np.float32)
+    origin = np.stack([xs, np.full(8, 0.2), np.full(8, 1.0)], -1)
+    for sign in (1.0, -1.0):
+        origin[:, 2] = sign
+        direction = np.broadcast_to(np.array([0, 0, -sign], np.float32), origin.shape)
+        result = _assert_same(INSTANCED_ANY, outer, origin, direction)
+        assert (np.asarray(result.type) != 0).any() and (np.asarray(result.type) == 0).any()
+
+
+# --- composition: jit, vmap, grad, float64, buckets ---------------------------------------------------------------
+
+
+def _mesh_and_rays(n=64, seed=0):
+    v, f = icosphere(2)
+    rng = np.random.default_rng(seed)
+    origin = rng.normal(size=(n, 3)) * 3
+    direction = rng.normal(size=(n, 3)) * 0.3 - origin
+    direction[::4] = rng.normal(size=direction[::4].shape)  # some rays miss
+    return v.astype(np.float32), f, origin.astype(np.float32), direction.astype(np.float32)
+
+
+def test_jit_and_vmap_over_rays_and_scenes_equal_unbatched_calls():
+    """Under ``vmap`` the callback gets the batch axes: one call for rays over one scene, a loop over scenes."""
+    v, f, origin, direction = _mesh_and_rays()
+    intersector = rt.Intersector(rt.tags.triangle_data, backend="cpu")
+    scales = (1.0, 1.5)
+    structures = [rt.build_primitive_structure(rt.TriangleGeometry(v * s, f)) for s in scales]
+    halves = [rt.Ray(origin[i * 32 : (i + 1) * 32], direction[i * 32 : (i + 1) * 32]) for i in range(2)]
+    expected = np.stack(
+        [np.asarray(intersector.intersect(r, s).primitive_id) for r, s in zip(halves, structures, strict=True)]
+    )
+    assert (expected >= 0).any() and (expected < 0).any()
+    rays = rt.Ray(origin.reshape(2, 32, 3), direction.reshape(2, 32, 3))
+    jitted = jax.jit(lambda r: intersector.intersect(r, structures[0]).primitive_id)(halves[0])
+    np.testing.assert_array_equal(np.asarray(jitted), expected[0])
+    over_rays = jax.vmap(lambda r: intersector.intersect(r, structures[0]).primitive_id)(rays)
+    np.testing.assert_array_equal(np.asarray(over_rays)[0], expected[0])
+    np.testing.assert_array_equal(
+        np.asarray(over_rays)[1], np.asarray(intersector.intersect(halves[1], structures[0]).primitive_id)
+    )
+    stacked = jax.vmap(lambda s: rt.build_primitive_structure(rt.TriangleGeometry(v * s, f)))(jnp.array(scales))
+    over_scenes = jax.vmap(lambda r, s: intersector.intersect(r, s).primitive_id)(rays, stacked)
+    np.testing.assert_array_equal(np.asarray(over_scenes), expected)
+
+
+def test_gradients_equal_the_portable_path():
+    v, f, origin, direction = _mesh_and_rays(32)
+
+    def loss(intersector, vertices, o):
+        structure = rt.build_primitive_structure(rt.TriangleGeometry(vertices, f))
+        hit = intersector.intersect(rt.Ray(o, direction), structure)
+        return jnp.sum(jnp.where(hit.type != 0, hit.distance, 0.0)) + jnp.sum(hit.triangle_barycentric_coord)
+
+    portable, compiled = _pair(rt.tags.triangle_data)
+    expected = jax.grad(loss, argnums=(1, 2))(portable, jnp.asarray(v), jnp.asarray(origin))
+    got = jax.grad(loss, argnums=(1, 2))(compiled, jnp.asarray(v), jnp.asarray(origin))
+    for a, b in zip(got, expected, strict=True):
+        assert np.abs(np.asarray(b)).max() > 0
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_float64_equals_the_portable_path():
+    with jax.enable_x64(True):
+        v, f, origin, direction = _mesh_and_rays()
+        structure = rt.build_primitive_structure(rt.TriangleGeometry(v.astype(np.float64), f))
+        assert structure.leaf_triangle.dtype == jnp.float64
+        rays = rt.Ray(origin.astype(np.float64), direction.astype(np.float64))
+        portable, compiled = _pair(rt.tags.triangle_data, rt.tags.stats)
+        a, b = portable.intersect(rays, structure), compiled.intersect(rays, structure)
+        assert b.distance.dtype == jnp.float64
+        for name in ("distance", "primitive_id", "nodes_visited", "triangle_barycentric_coord"):
+            np.testing.assert_array_equal(np.asarray(b[name]), np.asarray(a[name]), err_msg=name)
+
+
+def test_no_recompile_within_a_bucket():
+    v, f, origin, direction = _mesh_and_rays(200)
+    structure = rt.build_primitive_structure(rt.TriangleGeometry(v, f))
+    intersector = rt.Intersector(backend="cpu")
+    intersector.intersect(rt.Ray(origin[:130], direction[:130]), structure).distance.block_until_ready()
+    from jaxrt._src.traversal import cpu_kernel
+
+    compiled, kernels = pipeline._intersect_jit._cache_size(), len(cpu_kernel.trace_rays.signatures)
+    for n in (131, 170, 200):  # the bucket of 256
+        hit = intersector.intersect(rt.Ray(origin[:n], direction[:n]), structure)
+        assert hit.distance.shape == (n,)
+    assert pipeline._intersect_jit._cache_size() == compiled
+    assert len(cpu_kernel.trace_rays.signatures) == kernels
+
+
+# --- backend choice ---------------------------------------------------------------------------------------------
+
+
+def test_auto_picks_the_cpu_traversal_and_forced_backends_explain_themselves(monkeypatch):
+    assert pipeline.resolve_backend(rt.Intersector()) == "cpu"
+    assert pipeline.resolve_backend(rt.Intersector(backend="portable")) == "portable"
+    structure = _build([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    rays = rt.Ray([0.2, 0.2, 1.0], [0.0, 0.0, -1.0])
+    with pytest.raises(ValueError, match="backend='cpu' cannot run: multi-hit"):
+        rt.Intersector(backend="cpu", max_hits=2).intersect(rays, structure)
+    # Declined cases under "auto" take the portable traversal (they are traced in test_multi_hit.py).
+    assert pipeline.kernel_declines(rt.Intersector(max_hits=2), structure.geometry_info) is not None
+    monkeypatch.setattr(jax, "default_backend", lambda: "tpu")
+    with pytest.raises(ValueError, match="backend='cpu' cannot run: the default JAX backend is 'tpu'"):
+        rt.Intersector(backend="cpu").intersect(rays, structure)
+    assert pipeline.resolve_backend(rt.Intersector()) == "portable"
