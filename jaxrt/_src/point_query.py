@@ -31,6 +31,8 @@ from jaxrt._src.structures import PrimitiveAccelerationStructure
 
 __all__ = ["ClosestPointResult", "closest_point", "check_points", "check_structure", "run_flat"]
 
+#: Stack entries a step may drop before it visits one.
+_POPS = 4
 #: Points traversed together by one vmapped loop.
 LANES = 1024
 
@@ -123,10 +125,13 @@ def _search(structure: PrimitiveAccelerationStructure, is_box_table, limit2: jax
         )
 
     def step(p: jax.Array, s: _State) -> _State:
-        top = jnp.maximum(s.size - 1, 0)
+        # Entries whose box is farther than the best found since they were pushed are dropped: the topmost
+        # live one of the top few is visited (no visit when none of them is live).
+        depth = s.size - 1 - jnp.arange(_POPS, dtype=jnp.int32)
+        alive = (depth >= 0) & (s.bound[jnp.maximum(depth, 0)] <= s.best)
+        live = jnp.any(alive)
+        top = jnp.where(live, depth[jnp.argmax(alive)], jnp.maximum(s.size - _POPS, 0))
         node = s.stack[top]
-        # Dropped when the best shrank below the node's box distance since it was pushed.
-        live = (s.size > 0) & (s.bound[top] <= s.best)
         size = top
         d_box = geo.squared_box_distance(p, structure.node_lower[node], structure.node_upper[node])  # (2,)
         # Empty boxes (padding, zero-area triangles) fail every comparison, even with an infinite best.

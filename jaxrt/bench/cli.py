@@ -156,7 +156,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         from jaxrt.bench import points
 
         print()
-        extra = ["--data-dir", args.data_dir] if args.data_dir else []
+        extra = ["--triangles", str(config.n_triangles), *(["--data-dir", args.data_dir] if args.data_dir else [])]
         points.main(["--scenes", *config.scenes, *extra, *(["--quick"] if args.quick else [])])
     return 0
 
