@@ -201,10 +201,11 @@ def winding_number(
       ``float`` array of the points' batch shape.
 
     Examples:
-      >>> import jaxrt as rt, trimesh
-      >>> m = trimesh.creation.icosphere()
-      >>> s = rt.build_primitive_structure(rt.TriangleGeometry(m.vertices.astype("f4"), m.faces))
-      >>> [round(float(w), 3) for w in rt.winding_number([[0., 0, 0], [3., 0, 0]], s)]
+      >>> import jaxrt as rt
+      >>> vertices = [[1., 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]]
+      >>> faces = [[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]]
+      >>> s = rt.build_primitive_structure(rt.TriangleGeometry(vertices, faces))  # an octahedron
+      >>> [round(float(w), 2) + 0.0 for w in rt.winding_number([[0., 0, 0], [3., 0, 0]], s)]
       [1.0, 0.0]
     """
     return _winding(points, structure, exact, beta, "winding_number")
@@ -224,9 +225,10 @@ def contains(
     holes and self-intersections; see :func:`winding_number` for the arguments).
 
     Examples:
-      >>> import jaxrt as rt, trimesh
-      >>> m = trimesh.creation.icosphere()
-      >>> s = rt.build_primitive_structure(rt.TriangleGeometry(m.vertices.astype("f4"), m.faces))
+      >>> import jaxrt as rt
+      >>> vertices = [[1., 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]]
+      >>> faces = [[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]]
+      >>> s = rt.build_primitive_structure(rt.TriangleGeometry(vertices, faces))  # an octahedron
       >>> rt.contains([[0., 0, 0], [3., 0, 0]], s).tolist()
       [True, False]
     """
@@ -242,11 +244,12 @@ def signed_distance(
     Differentiable with respect to the points and the vertices (the sign is held fixed).
 
     Examples:
-      >>> import jaxrt as rt, trimesh
-      >>> m = trimesh.creation.icosphere(subdivisions=4)
-      >>> s = rt.build_primitive_structure(rt.TriangleGeometry(m.vertices.astype("f4"), m.faces))
-      >>> [round(float(d), 2) for d in rt.signed_distance([[0., 0, 0], [3., 0, 0]], s)]
-      [-1.0, 2.0]
+      >>> import jaxrt as rt
+      >>> vertices = [[1., 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]]
+      >>> faces = [[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]]
+      >>> s = rt.build_primitive_structure(rt.TriangleGeometry(vertices, faces))  # an octahedron
+      >>> [round(float(d), 3) for d in rt.signed_distance([[0., 0, 0], [3., 0, 0]], s)]
+      [-0.577, 2.0]
     """
     inside = _winding(points, structure, exact, beta, "signed_distance") >= 0.5
     distance = closest_point(points, structure).distance
