@@ -71,8 +71,7 @@ def walk_points(
     def body(carry):
         lane_point, state, next_point, out = carry
         p = queue[jnp.maximum(lane_point, 0)]
-        for _ in range(steps_per_refill):
-            state = vstep(p, state)
+        state = lax.fori_loop(0, steps_per_refill, lambda _, s: vstep(p, s), state)
         retire = vdone(state) & (lane_point >= 0)
         target = jnp.where(retire, lane_point, n)
         out = jax.tree_util.tree_map(lambda o, v: o.at[target].set(v, mode="drop"), out, voutput(state))
