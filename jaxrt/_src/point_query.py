@@ -34,7 +34,7 @@ __all__ = ["ClosestPointResult", "closest_point", "check_points", "check_structu
 #: Stack entries a step may drop before it visits one.
 _POPS = 4
 #: Points traversed together by one vmapped loop.
-LANES = 1024
+LANES = 512
 
 
 class ClosestPointResult(NamedTuple):
