@@ -351,3 +351,16 @@ def test_shared_mesh_against_brute_force(name):
     assert_closest(result, points, triangles, atol=2e-5 * float(np.abs(points).max()))
     exact = np.asarray(rt.winding_number(points, structure, exact=True))
     np.testing.assert_array_equal(np.asarray(rt.contains(points, structure)), exact >= 0.5)
+
+
+def test_points_bench_quick_row():
+    """The bench row runs and its errors against the float64 brute force are nil on a small sphere (sizes
+    that share the compiled programs of the tests above)."""
+    from jaxrt.bench import points
+
+    args = ["--quick", "--scenes", "sphere", "--triangles", "2000", "--points", "1024", "--reference-points", "128"]
+    row = points.main(args)["scenes"][0]
+    assert row["triangles"] > 1900 and row["points"] == 1024 and row["reference_points"] == 128
+    assert row["wrong_primitive"] == 0 and row["sign_disagree_fast"] == 0 and row["sign_disagree_exact"] == 0
+    assert row["max_distance_error_rel"] < 1e-6
+    assert row["closest_point"]["mpoints_s"] > 0 and row["signed_distance"]["mpoints_s"] > 0
