@@ -31,12 +31,14 @@ from jaxrt._src.intersector import Intersector, count_intersections
 from jaxrt._src.io.structure_file import load, save
 from jaxrt._src.motion import MotionSpec
 from jaxrt._src.numerics import offset_ray_origin
+from jaxrt._src.point_query import ClosestPointResult, closest_point
 from jaxrt._src.primitives.curve import CurveOptions
 from jaxrt._src.query import IntersectionQuery, intersection_query
 from jaxrt._src.ray import Ray
 from jaxrt._src.result import IntersectionResult, IntersectionType
 from jaxrt._src.sizes import StructureSizes, structure_sizes
 from jaxrt._src.structures import PrimitiveAccelerationStructure, build_primitive_structure
+from jaxrt._src.winding import contains, signed_distance, winding_number
 
 __version__ = "0.1.0"
 
@@ -44,6 +46,7 @@ __all__ = [
     "BoundingBoxCandidate",
     "BuildCheckError",
     "BoundingBoxGeometry",
+    "ClosestPointResult",
     "CurveBasis",
     "CurveEndCaps",
     "CurveGeometry",
@@ -67,7 +70,9 @@ __all__ = [
     "TriangleGeometry",
     "build_instance_structure",
     "build_primitive_structure",
+    "closest_point",
     "compact",
+    "contains",
     "count_intersections",
     "debug",
     "intersection_functions",
@@ -79,6 +84,8 @@ __all__ = [
     "sah_cost",
     "save",
     "shading",
+    "signed_distance",
     "structure_sizes",
     "tags",
+    "winding_number",
 ]

@@ -71,6 +71,11 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="also run the custom-geometry tables: boxes with functions, filters, multi-hit (jaxrt.bench.custom)",
     )
+    parser.add_argument(
+        "--points",
+        action="store_true",
+        help="also run the point-query table: closest point, signed distance, winding number (jaxrt.bench.points)",
+    )
     return parser
 
 
@@ -166,6 +171,12 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         print()
         custom.main(["--quick"] if args.quick else [])
+    if args.points:
+        from jaxrt.bench import points
+
+        print()
+        extra = ["--triangles", str(config.n_triangles), *(["--data-dir", args.data_dir] if args.data_dir else [])]
+        points.main(["--scenes", *config.scenes, *extra, *(["--quick"] if args.quick else [])])
     return 0
 
 

@@ -1,0 +1,106 @@
+"""Point-to-primitive geometry: the closest point of a triangle or a box, and a triangle's solid angle.
+
+Closest point on a triangle: Ericson, *Real-Time Collision Detection* (2005), section 5.1.5. The point's
+Voronoi region of the triangle (three vertices, three edges, the face) is found from six dot products; every
+division is guarded, so zero-length edges and collinear (zero-area) triangles give the closest point of
+their segment or vertex instead of a NaN. Barycentrics follow Metal: the point is
+``(1 - u - v) * v0 + u * v1 + v * v2``.
+
+Solid angle: Van Oosterom and Strackee, "The Solid Angle of a Plane Triangle", IEEE Trans. Biomed. Eng.
+30(2), 1983 (the ``atan2`` form), positive when the triangle's counterclockwise normal points away from the
+point.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+__all__ = ["closest_on_triangle", "closest_on_box", "solid_angle", "squared_box_distance"]
+
+
+def _dot(a: jax.Array, b: jax.Array) -> jax.Array:
+    return jnp.sum(a * b, axis=-1)
+
+
+def _ratio(num: jax.Array, den: jax.Array) -> jax.Array:
+    """``num / den`` clamped to ``[0, 1]``, and 0 where ``den`` is 0 (no NaN value or gradient)."""
+    ok = den != 0
+    return jnp.clip(jnp.where(ok, num / jnp.where(ok, den, 1), 0), 0, 1)
+
+
+def closest_on_triangle(p: jax.Array, tri: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The barycentrics ``(u, v)`` of the point of triangle ``tri (3, 3)`` closest to ``p (3,)``.
+
+    The point itself is ``(1 - u - v) * tri[0] + u * tri[1] + v * tri[2]``; both differentiate with respect
+    to ``p`` and ``tri`` within the point's Voronoi region.
+    """
+    a, b, c = tri[0], tri[1], tri[2]
+    ab, ac = b - a, c - a
+    ap, bp, cp = p - a, p - b, p - c
+    d1, d2 = _dot(ab, ap), _dot(ac, ap)
+    d3, d4 = _dot(ab, bp), _dot(ac, bp)
+    d5, d6 = _dot(ab, cp), _dot(ac, cp)
+    # Signed areas (times |n|^2) of the sub-triangles opposite each vertex (Ericson 5.1.5).
+    vc = d1 * d4 - d3 * d2
+    vb = d5 * d2 - d1 * d6
+    va = d3 * d6 - d5 * d4
+    in_a = (d1 <= 0) & (d2 <= 0)
+    in_b = (d3 >= 0) & (d4 <= d3)
+    in_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
+    in_c = (d6 >= 0) & (d5 <= d6)
+    in_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
+    in_bc = (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)
+    t_ab = _ratio(d1, d1 - d3)
+    t_ac = _ratio(d2, d2 - d6)
+    t_bc = _ratio(d4 - d3, (d4 - d3) + (d5 - d6))
+    area = va + vb + vc
+    face_ok = area > 0
+    safe_area = jnp.where(face_ok, area, 1)
+    face_u = jnp.where(face_ok, vb / safe_area, 0)
+    face_v = jnp.where(face_ok, vc / safe_area, 0)
+    zero = jnp.zeros_like(d1)
+    one = jnp.ones_like(d1)
+    # The regions in Ericson's order: the first that holds wins.
+    u = jnp.where(
+        in_a,
+        zero,
+        jnp.where(
+            in_b,
+            one,
+            jnp.where(in_ab, t_ab, jnp.where(in_c, zero, jnp.where(in_ac, zero, jnp.where(in_bc, 1 - t_bc, face_u)))),
+        ),
+    )
+    v = jnp.where(
+        in_a | in_b | in_ab,
+        zero,
+        jnp.where(in_c, one, jnp.where(in_ac, t_ac, jnp.where(in_bc, t_bc, face_v))),
+    )
+    return u, v
+
+
+def triangle_point(tri: jax.Array, u: jax.Array, v: jax.Array) -> jax.Array:
+    """``(1 - u - v) * tri[0] + u * tri[1] + v * tri[2]`` (Metal's barycentric convention)."""
+    return tri[0] + u[..., None] * (tri[1] - tri[0]) + v[..., None] * (tri[2] - tri[0])
+
+
+def closest_on_box(p: jax.Array, box: jax.Array) -> jax.Array:
+    """The point of the solid box ``box (..., 2, 3)`` (lower, upper corner) closest to ``p (..., 3)`` (``p``
+    inside it)."""
+    return jnp.clip(p, box[..., 0, :], box[..., 1, :])
+
+
+def squared_box_distance(p: jax.Array, lower: jax.Array, upper: jax.Array) -> jax.Array:
+    """Squared distance from ``p (..., 3)`` to boxes ``(..., 3)``; ``inf`` for an empty box (lower > upper)."""
+    d = jnp.maximum(jnp.maximum(lower - p, p - upper), 0)
+    return _dot(d, d)
+
+
+def solid_angle(p: jax.Array, tri: jax.Array) -> jax.Array:
+    """The signed solid angle of triangle ``tri (..., 3, 3)`` seen from ``p (..., 3)`` (Van Oosterom and
+    Strackee 1983); 0 where the point is in the triangle's plane (or the triangle has no area)."""
+    a, b, c = tri[..., 0, :] - p, tri[..., 1, :] - p, tri[..., 2, :] - p
+    la, lb, lc = (jnp.sqrt(_dot(x, x)) for x in (a, b, c))
+    det = _dot(a, jnp.cross(b, c))
+    den = la * lb * lc + _dot(a, b) * lc + _dot(a, c) * lb + _dot(b, c) * la
+    return jnp.where(det == 0, 0, 2 * jnp.arctan2(det, den))

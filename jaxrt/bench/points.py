@@ -1,0 +1,235 @@
+"""``python -m jaxrt.bench.points`` (also ``python -m jaxrt.bench --points``): point queries, speed against error.
+
+Per scene, a fixed set of query points (half near the surface: a random point of a random triangle moved by
+a Gaussian of 1% of the bounding-box diagonal; half uniform in the bounding box grown by 10%), then:
+
+- ``closest_point``, ``signed_distance`` (fast winding-number sign) and ``winding_number`` (fast and exact),
+  each in Mpoints/s (median of warm runs; the first, compiling run excluded);
+- errors on a subset against a float64 NumPy brute force over every triangle: the largest distance error
+  relative to the bounding-box diagonal, the points whose primitive is not a nearest one (beyond a tie
+  tolerance), and the points whose inside/outside sign differs from the float64 exact winding number;
+- the CPU peer on the same points: Open3D's ``RaycastingScene`` (``compute_closest_points`` and
+  ``compute_signed_distance``, whose sign comes from ray parity) when ``open3d`` imports.
+
+Flags: ``--scenes``, ``--points``, ``--reference-points``, ``--repeats``, ``--data-dir``, ``--quick``,
+``--json PATH``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+import jax
+import numpy as np
+
+import jaxrt as rt
+from jaxrt.bench.report import machine_info
+from jaxrt.bench.scenes import PROCEDURAL, SHARED_MESHES, load_scene
+from jaxrt.bench.timing import timed
+
+__all__ = ["main", "query_points", "reference_closest", "reference_winding", "bench_points"]
+
+_DEFAULTS = dict(points=1 << 16, reference_points=1024, repeats=3)
+_QUICK = dict(points=1 << 10, reference_points=128, repeats=1)
+#: Triangles per NumPy chunk of the brute force (bounds its memory).
+_CHUNK = 1 << 21
+
+
+def query_points(vertices: np.ndarray, indices: np.ndarray, n: int, seed: int) -> np.ndarray:
+    """``n`` float32 points: half near the surface, half uniform in the grown bounding box."""
+    rng = np.random.default_rng(seed)
+    lo, hi = vertices.min(0).astype(np.float64), vertices.max(0).astype(np.float64)
+    diagonal = float(np.linalg.norm(hi - lo))
+    near = n // 2
+    tri = vertices[indices[rng.integers(0, len(indices), near)]].astype(np.float64)
+    r1, r2 = rng.random((2, near, 1))
+    s = np.sqrt(r1)
+    surface = (1 - s) * tri[:, 0] + s * (1 - r2) * tri[:, 1] + s * r2 * tri[:, 2]
+    surface += rng.normal(scale=0.01 * diagonal, size=surface.shape)
+    grow = 0.1 * (hi - lo)
+    uniform = rng.uniform(lo - grow, hi + grow, (n - near, 3))
+    return np.concatenate([surface, uniform]).astype(np.float32)
+
+
+def reference_closest(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Float64 brute force: ``(distance (n,), distance to every triangle (n, T))``; zero-area triangles
+    (which the builder leaves out) are ``inf``."""
+    tri = np.asarray(triangles, np.float64)
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    n = np.cross(b - a, c - a)
+    t32 = np.asarray(triangles, np.float32)
+    e1, e2 = (t32[:, 1] - t32[:, 0]).astype(np.float64), (t32[:, 2] - t32[:, 0]).astype(np.float64)
+    area = (np.cross(e1, e2) != 0).any(axis=-1)
+    nn = np.sum(n * n, axis=-1)
+    safe = np.where(nn > 0, nn, 1)
+    rows = []
+    step = max(1, _CHUNK // max(1, len(tri)))
+    for start in range(0, len(points), step):
+        p = np.asarray(points[start : start + step], np.float64)[:, None, :]
+        proj = p - (np.sum((p - a) * n, axis=-1) / safe)[..., None] * n
+        inside = np.broadcast_to(nn > 0, proj.shape[:-1]).copy()
+        for e0, e1_ in ((a, b), (b, c), (c, a)):
+            inside &= np.sum(np.cross(e1_ - e0, proj - e0) * n, axis=-1) >= 0
+        best = np.where(inside, np.linalg.norm(p - proj, axis=-1), np.inf)
+        for e0, e1_ in ((a, b), (b, c), (c, a)):
+            ab = e1_ - e0
+            den = np.sum(ab * ab, axis=-1)
+            t = np.clip(np.sum((p - e0) * ab, axis=-1) / np.where(den > 0, den, 1), 0, 1)
+            best = np.minimum(best, np.linalg.norm(p - (e0 + t[..., None] * ab), axis=-1))
+        rows.append(np.where(area, best, np.inf))
+    every = np.concatenate(rows)
+    return every.min(axis=1), every
+
+
+def reference_winding(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Float64 exact generalized winding numbers (every triangle's solid angle)."""
+    tri = np.asarray(triangles, np.float64)
+    out = []
+    step = max(1, _CHUNK // max(1, len(tri)))
+    for start in range(0, len(points), step):
+        v = tri[None] - np.asarray(points[start : start + step], np.float64)[:, None, None, :]
+        a, b, c = v[..., 0, :], v[..., 1, :], v[..., 2, :]
+        la, lb, lc = (np.linalg.norm(x, axis=-1) for x in (a, b, c))
+        det = np.sum(a * np.cross(b, c), axis=-1)
+        den = la * lb * lc + np.sum(a * b, -1) * lc + np.sum(a * c, -1) * lb + np.sum(b * c, -1) * la
+        out.append(np.sum(2 * np.arctan2(det, den), axis=1) / (4 * np.pi))
+    return np.concatenate(out)
+
+
+def _open3d_scene(vertices: np.ndarray, indices: np.ndarray):
+    try:
+        import open3d as o3d
+    except Exception:  # not installed, or its shared libraries are missing
+        return None
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(indices.astype(np.uint32)))
+    return scene, o3d
+
+
+def bench_points(name: str, sizes: dict[str, Any], data_dir: str | None, seed: int) -> dict[str, Any]:
+    """Speeds and errors of the point queries on one scene (see the module docstring)."""
+    scene = load_scene(name, n_triangles=sizes.get("triangles", 100_000), seed=seed, data_dir=data_dir)
+    vertices, indices = scene.vertices, scene.indices
+    triangles = vertices[indices]
+    structure = jax.block_until_ready(rt.build_primitive_structure(rt.TriangleGeometry(vertices, indices)))
+    points = query_points(vertices, indices, sizes["points"], seed)
+    n, repeats = len(points), sizes["repeats"]
+    diagonal = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
+    out: dict[str, Any] = {"scene": name, "triangles": len(indices), "points": n, "diagonal": diagonal}
+
+    t_closest, closest = timed(lambda: rt.closest_point(points, structure), repeats)
+    t_signed, signed = timed(lambda: rt.signed_distance(points, structure), repeats)
+    t_wind, _ = timed(lambda: rt.winding_number(points, structure), repeats)
+    m = min(n, sizes["reference_points"])
+    subset = np.concatenate([points[: m // 2], points[n // 2 : n // 2 + m - m // 2]])  # near and uniform
+    t_exact, exact = timed(lambda: rt.winding_number(subset, structure, exact=True), min(repeats, 1))
+    out["closest_point"] = t_closest.as_dict(n, "mpoints_s")
+    out["signed_distance"] = t_signed.as_dict(n, "mpoints_s")
+    out["winding_fast"] = t_wind.as_dict(n, "mpoints_s")
+    out["winding_exact"] = t_exact.as_dict(m, "mpoints_s")
+
+    ref, every = reference_closest(subset, triangles)
+    got = rt.closest_point(subset, structure)
+    distance = np.asarray(got.distance, np.float64)
+    prim = np.asarray(got.primitive_id)
+    tie = 1e-6 * diagonal
+    out["max_distance_error_rel"] = float(np.max(np.abs(distance - ref)) / diagonal)
+    out["wrong_primitive"] = int(np.sum(every[np.arange(m), prim] > ref + tie))
+    winding = reference_winding(subset, triangles)
+    fast_inside = np.asarray(rt.contains(subset, structure))
+    out["sign_disagree_fast"] = int(np.sum(fast_inside != (winding >= 0.5)))
+    out["sign_disagree_exact"] = int(np.sum((np.asarray(exact) >= 0.5) != (winding >= 0.5)))
+    out["max_winding_error_fast"] = float(np.max(np.abs(np.asarray(rt.winding_number(subset, structure)) - winding)))
+    out["reference_points"] = m
+
+    peer = _open3d_scene(vertices, indices)
+    if peer is not None:
+        o3d_scene, o3d = peer
+        query = o3d.core.Tensor(points)
+        t_peer, answer = timed(lambda: o3d_scene.compute_closest_points(query), repeats)
+        t_peer_sd, peer_sd = timed(lambda: o3d_scene.compute_signed_distance(query), repeats)
+        out["open3d_closest"] = t_peer.as_dict(n, "mpoints_s")
+        out["open3d_signed"] = t_peer_sd.as_dict(n, "mpoints_s")
+        peer_distance = np.linalg.norm(answer["points"].numpy().astype(np.float64) - points, axis=-1)
+        out["open3d_max_distance_diff_rel"] = float(
+            np.max(np.abs(peer_distance - np.asarray(closest.distance))) / diagonal
+        )
+        sd = np.asarray(signed)
+        out["open3d_sign_disagree"] = int(np.sum((peer_sd.numpy() < 0) != (sd < 0)))
+    return out
+
+
+def format_table(results: dict[str, Any]) -> str:
+    """The results as a fixed-width table."""
+    lines = [
+        f"{'scene':8} {'tris':>9} {'points':>7} {'query':18} {'jaxrt Mpt/s':>11} {'Open3D Mpt/s':>12}  errors",
+    ]
+    for r in results["scenes"]:
+        peer = lambda key, r=r: f"{r[key]['mpoints_s']:12.3f}" if key in r else f"{'-':>12}"  # noqa: E731
+        head = f"{r['scene']:8} {r['triangles']:9,} {r['points']:7,}"
+        blank = " " * len(head)
+        m = r["reference_points"]
+        lines.append(
+            f"{head} {'closest_point':18} {r['closest_point']['mpoints_s']:11.3f} {peer('open3d_closest')}  "
+            f"max |d - d64| {r['max_distance_error_rel']:.1e} diag, wrong primitive {r['wrong_primitive']}/{m}"
+        )
+        lines.append(
+            f"{blank} {'signed_distance':18} {r['signed_distance']['mpoints_s']:11.3f} {peer('open3d_signed')}  "
+            f"sign vs exact float64 winding: {r['sign_disagree_fast']}/{m} differ"
+            + (f"; Open3D signs differ on {r['open3d_sign_disagree']}/{r['points']}" if "open3d_signed" in r else "")
+        )
+        lines.append(
+            f"{blank} {'winding (fast)':18} {r['winding_fast']['mpoints_s']:11.3f} {'-':>12}  "
+            f"max |w - w64| {r['max_winding_error_fast']:.3f}"
+        )
+        lines.append(
+            f"{blank} {'winding (exact)':18} {r['winding_exact']['mpoints_s']:11.4f} {'-':>12}  "
+            f"sign: {r['sign_disagree_exact']}/{m} differ (on {m} points)"
+        )
+    for name, why in results.get("skipped", {}).items():
+        lines.append(f"{name}: skipped ({why})")
+    return "\n".join(lines)
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m jaxrt.bench.points", description=__doc__.split("\n\n")[0])
+    names = sorted(set(PROCEDURAL) | set(SHARED_MESHES))
+    parser.add_argument("--scenes", nargs="+", choices=names, default=["bunny", "dragon"])
+    parser.add_argument("--points", type=int, help=f"query points (default {_DEFAULTS['points']:,})")
+    parser.add_argument("--reference-points", type=int, help="points checked against the float64 brute force")
+    parser.add_argument("--repeats", type=int, help="warm runs per measurement")
+    parser.add_argument("--triangles", type=int, help="triangles of procedural scenes (default 100,000)")
+    parser.add_argument("--data-dir", help="shared mesh folder (default: $JAXRT_DATA_DIR or ../shared/data)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--quick", action="store_true", help="tiny sizes and one repeat: a smoke test")
+    parser.add_argument("--json", metavar="PATH", help="also write every number and the machine info to PATH")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    """Run the point-query table, print it, and write the JSON file if asked; returns the results."""
+    args = _parser().parse_args(argv)
+    given = {k: getattr(args, k) for k in ("points", "reference_points", "repeats", "triangles")}
+    sizes = {**(_QUICK if args.quick else _DEFAULTS), **{k: v for k, v in given.items() if v is not None}}
+    results: dict[str, Any] = {"machine": machine_info(), "config": dict(sizes, seed=args.seed), "scenes": []}
+    results["skipped"] = {}
+    for name in args.scenes:
+        try:
+            results["scenes"].append(bench_points(name, sizes, args.data_dir, args.seed))
+        except FileNotFoundError as error:
+            results["skipped"][name] = str(error)
+    print(format_table(results))
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(results, f, indent=1)
+        print(f"wrote {args.json}")
+    return results
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
+    sys.exit(0)
