@@ -12,6 +12,8 @@
 #   instanced the instanced-kernel tests and the instancing bench (kernel and portable paths, batched scenes)
 #   flat      the flat kernel of this tree against an earlier one (sphere, soup, bunny), then the GPU tests
 #   programs  the instancing bench without the flattened scene, the kernel also under several program caps
+#   features  the GPU tests of the kernel, then the normal-tag, motion and point-query tests on the GPU backend
+#   points    the point-query bench (closest point, signed distance) with Warp's mesh queries beside it
 # "instanced" and "flat" run from snapshots of committed trees, so that uncommitted work in the working tree
 # cannot change what is measured: .snap/after (git archive HEAD jaxrt tests scripts pyproject.toml) and, for
 # "flat", .snap/before (git archive <commit> jaxrt); the bunny is read from .data/stanford-bunny/.
@@ -61,6 +63,19 @@ case $mode in
     timeout 220 python3 -m jaxrt.bench.gpu --peers --repeats 5 --json "$out/bench_peers.json" 2>&1 | tee "$out/bench_peers.log"
     timeout 300 python3 -m jaxrt.bench.gpu --peers --repeats 5 --portable-rays 0 --meshes .meshes \
       --scenes bunny,dragon,sponza,sibenik,bunny-1M,dragon-1M --json "$out/bench_meshes.json" 2>&1 | tee "$out/bench_meshes.log"
+    ;;
+  features)
+    step tests_gpu 330 python3 -m pytest tests/test_gpu.py tests/test_gpu_instanced.py -q -p no:cacheprovider -rs \
+      -k "not interpreter" --durations=5
+    step tests_features 200 python3 -m pytest tests/test_normals.py tests/test_motion.py tests/test_point_queries.py \
+      tests/test_cpu_backend.py -q -p no:cacheprovider -rs --durations=5
+    ;;
+  points)
+    mkdir -p /root/wsite && tar xzf .peers/warp-py.tgz -C /root/wsite &&
+      cat /root/parts/warp.so.xz.part00 .peers/warp.so.xz.part01 .peers/warp.so.xz.part02 | xz -d > /root/wsite/warp/bin/warp.so || exit 1
+    export PYTHONPATH=$PYTHONPATH:/root/wsite JAXRT_DATA_DIR=$root/.data
+    step points 400 python3 -m jaxrt.bench.points --peers --scenes sphere bunny --triangles 1000000 \
+      --points 1048576 --reference-points 256 --repeats 3 --json "$out/points.json"
     ;;
   tests)
     timeout 400 python3 -m pytest tests/test_gpu.py -v -p no:cacheprovider -rs -s --durations=5 2>&1 | tee "$out/tests.log"

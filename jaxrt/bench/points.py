@@ -9,10 +9,12 @@ a Gaussian of 1% of the bounding-box diagonal; half uniform in the bounding box 
   relative to the bounding-box diagonal, the points whose primitive is not a nearest one (beyond a tie
   tolerance), and the points whose inside/outside sign differs from the float64 exact winding number;
 - the CPU peer on the same points: Open3D's ``RaycastingScene`` (``compute_closest_points`` and
-  ``compute_signed_distance``, whose sign comes from ray parity) when ``open3d`` imports.
+  ``compute_signed_distance``, whose sign comes from ray parity) when ``open3d`` imports;
+- with ``--peers``, NVIDIA Warp's ``wp.Mesh`` on the default JAX device (``mesh_query_point_no_sign`` for the
+  closest point, ``mesh_query_point_sign_winding_number`` for the signed distance) when ``warp`` imports.
 
 Flags: ``--scenes``, ``--points``, ``--reference-points``, ``--repeats``, ``--data-dir``, ``--quick``,
-``--json PATH``.
+``--peers``, ``--json PATH``.
 """
 
 from __future__ import annotations
@@ -110,7 +112,57 @@ def _open3d_scene(vertices: np.ndarray, indices: np.ndarray):
     return scene, o3d
 
 
-def bench_points(name: str, sizes: dict[str, Any], data_dir: str | None, seed: int) -> dict[str, Any]:
+def _warp_peer(vertices: np.ndarray, indices: np.ndarray, points: np.ndarray, repeats: int) -> dict[str, Any] | None:
+    """Warp's mesh point queries on the same points (``None`` when ``warp`` does not import)."""
+    try:
+        import warp as wp
+    except Exception:  # not installed, or its library is missing
+        return None
+    wp.config.quiet = True
+    wp.init()
+    device = "cuda" if jax.default_backend() == "gpu" else "cpu"
+
+    @wp.kernel
+    def closest(mesh: wp.uint64, p: wp.array(dtype=wp.vec3), distance: wp.array(dtype=float)):  # fmt: skip
+        i = wp.tid()
+        q = wp.mesh_query_point_no_sign(mesh, p[i], 1.0e30)
+        distance[i] = wp.inf
+        if q.result:
+            distance[i] = wp.length(p[i] - wp.mesh_eval_position(mesh, q.face, q.u, q.v))
+
+    @wp.kernel
+    def signed(mesh: wp.uint64, p: wp.array(dtype=wp.vec3), distance: wp.array(dtype=float)):  # fmt: skip
+        i = wp.tid()
+        q = wp.mesh_query_point_sign_winding_number(mesh, p[i], 1.0e30, 2.0, 0.5)
+        distance[i] = wp.inf
+        if q.result:
+            distance[i] = q.sign * wp.length(p[i] - wp.mesh_eval_position(mesh, q.face, q.u, q.v))
+
+    with wp.ScopedDevice(device):
+        mesh = wp.Mesh(
+            wp.array(vertices.astype(np.float32), dtype=wp.vec3),
+            wp.array(indices.reshape(-1).astype(np.int32), dtype=wp.int32),
+            support_winding_number=True,
+        )
+        query = wp.array(points.astype(np.float32), dtype=wp.vec3)
+        out: dict[str, Any] = {"device": device}
+        for name, kernel in (("closest", closest), ("signed", signed)):
+            result = wp.zeros(len(points), dtype=float)
+
+            def run(kernel=kernel, result=result):
+                wp.launch(kernel, len(points), inputs=[mesh.id, query, result])
+                wp.synchronize()
+                return None
+
+            timing, _ = timed(run, repeats)
+            out[name] = timing.as_dict(len(points), "mpoints_s")
+            out[f"{name}_values"] = result.numpy()
+    return out
+
+
+def bench_points(
+    name: str, sizes: dict[str, Any], data_dir: str | None, seed: int, peers: bool = False
+) -> dict[str, Any]:
     """Speeds and errors of the point queries on one scene (see the module docstring)."""
     scene = load_scene(name, n_triangles=sizes.get("triangles", 100_000), seed=seed, data_dir=data_dir)
     vertices, indices = scene.vertices, scene.indices
@@ -160,6 +212,15 @@ def bench_points(name: str, sizes: dict[str, Any], data_dir: str | None, seed: i
         )
         sd = np.asarray(signed)
         out["open3d_sign_disagree"] = int(np.sum((peer_sd.numpy() < 0) != (sd < 0)))
+    warp = _warp_peer(vertices, indices, points, repeats) if peers else None
+    if warp is not None:
+        out["warp_device"] = warp["device"]
+        out["warp_closest"] = warp["closest"]
+        out["warp_signed"] = warp["signed"]
+        out["warp_max_distance_diff_rel"] = float(
+            np.max(np.abs(warp["closest_values"] - np.asarray(closest.distance))) / diagonal
+        )
+        out["warp_sign_disagree"] = int(np.sum((warp["signed_values"] < 0) != (np.asarray(signed) < 0)))
     return out
 
 
@@ -168,6 +229,7 @@ def format_table(results: dict[str, Any]) -> str:
     lines = [
         f"{'scene':8} {'tris':>9} {'points':>7} {'query':18} {'jaxrt Mpt/s':>11} {'Open3D Mpt/s':>12}  errors",
     ]
+    warp_lines = []
     for r in results["scenes"]:
         peer = lambda key, r=r: f"{r[key]['mpoints_s']:12.3f}" if key in r else f"{'-':>12}"  # noqa: E731
         head = f"{r['scene']:8} {r['triangles']:9,} {r['points']:7,}"
@@ -190,6 +252,15 @@ def format_table(results: dict[str, Any]) -> str:
             f"{blank} {'winding (exact)':18} {r['winding_exact']['mpoints_s']:11.4f} {'-':>12}  "
             f"sign: {r['sign_disagree_exact']}/{m} differ (on {m} points)"
         )
+        if "warp_closest" in r:
+            warp_lines.append(
+                f"{r['scene']:8} Warp ({r['warp_device']}): closest_point {r['warp_closest']['mpoints_s']:.3f} Mpt/s "
+                f"(jaxrt {r['closest_point']['mpoints_s']:.3f}; max |d - d_warp| "
+                f"{r['warp_max_distance_diff_rel']:.1e} diag), signed_distance {r['warp_signed']['mpoints_s']:.3f} "
+                f"Mpt/s (jaxrt {r['signed_distance']['mpoints_s']:.3f}; signs differ on "
+                f"{r['warp_sign_disagree']}/{r['points']})"
+            )
+    lines.extend(warp_lines)
     for name, why in results.get("skipped", {}).items():
         lines.append(f"{name}: skipped ({why})")
     return "\n".join(lines)
@@ -206,6 +277,7 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--data-dir", help="shared mesh folder (default: $JAXRT_DATA_DIR or ../shared/data)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--quick", action="store_true", help="tiny sizes and one repeat: a smoke test")
+    parser.add_argument("--peers", action="store_true", help="also NVIDIA Warp's mesh point queries (if installed)")
     parser.add_argument("--json", metavar="PATH", help="also write every number and the machine info to PATH")
     return parser
 
@@ -219,7 +291,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     results["skipped"] = {}
     for name in args.scenes:
         try:
-            results["scenes"].append(bench_points(name, sizes, args.data_dir, args.seed))
+            results["scenes"].append(bench_points(name, sizes, args.data_dir, args.seed, peers=args.peers))
         except FileNotFoundError as error:
             results["skipped"][name] = str(error)
     print(format_table(results))
