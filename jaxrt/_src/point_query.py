@@ -25,7 +25,7 @@ import numpy as np
 from jax import lax
 
 from jaxrt._src.instances import InstanceAccelerationStructure
-from jaxrt._src.point_traversal import walk_points
+from jaxrt._src.point_traversal import lanes_for_backend, walk_points
 from jaxrt._src.primitives import point_triangle as geo
 from jaxrt._src.structures import PrimitiveAccelerationStructure
 
@@ -272,4 +272,4 @@ def closest_point(
         value = float(np.asarray(max_distance))
         if not value >= 0:
             raise ValueError(f"{name}: max_distance must be non-negative, got {max_distance}")
-    return run_flat(_closest_point_flat, points, structure, max_distance, lanes=LANES)
+    return run_flat(_closest_point_flat, points, structure, max_distance, lanes=lanes_for_backend(LANES))

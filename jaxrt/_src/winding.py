@@ -29,7 +29,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from jaxrt._src.point_query import _box_table, check_points, check_structure, closest_point, run_flat
-from jaxrt._src.point_traversal import walk_points
+from jaxrt._src.point_traversal import lanes_for_backend, walk_points
 from jaxrt._src.primitives import point_triangle as geo
 from jaxrt._src.structures import PrimitiveAccelerationStructure
 
@@ -169,7 +169,7 @@ def _winding_flat(points: jax.Array, structure: PrimitiveAccelerationStructure, 
         padded = jnp.concatenate([points, jnp.zeros((chunks * chunk - n, 3), points.dtype)])
         return lax.map(per_point, padded.reshape(chunks, chunk, 3)).reshape(-1)[:n]
     start, step, done = _fast_walk(structure, table, _dipoles(structure, beta))
-    return walk_points(points, start, step, done, lambda s: s.total, lanes=_LANES)
+    return walk_points(points, start, step, done, lambda s: s.total, lanes=lanes_for_backend(_LANES))
 
 
 def _check_options(name: str, beta: float) -> float:
