@@ -238,7 +238,10 @@ def test_pack_rays_constants_and_padding():
 def test_unavailable_without_gpu():
     reason = gpu.unavailable_reason(rt.Intersector())
     assert reason is not None and "backend" in reason
-    assert _resolve_backend(rt.Intersector()) == "portable"
+    from jaxrt._src.traversal import cpu
+
+    # Without a GPU, "auto" takes the compiled CPU traversal where Numba is installed, else the portable one.
+    assert _resolve_backend(rt.Intersector()) == ("cpu" if cpu.unavailable_reason() is None else "portable")
     structure, _ = _scene()
     with pytest.raises(ValueError, match="backend='gpu' cannot run"):
         rt.Intersector(backend="gpu").intersect(_rays(8), structure)
