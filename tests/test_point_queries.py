@@ -334,7 +334,7 @@ def _data_dir() -> Path | None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["bunny", "dragon"])
+@pytest.mark.parametrize("name", ["bunny", "dragon", "sponza"])
 def test_shared_mesh_against_brute_force(name):
     from jaxrt.bench.scenes import SHARED_MESHES, shared_mesh
 
