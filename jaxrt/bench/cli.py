@@ -13,6 +13,7 @@ from jaxrt.bench.reference import REFERENCES
 from jaxrt.bench.report import format_table, machine_info, write_json
 from jaxrt.bench.scenes import PROCEDURAL, SHARED_MESHES, default_data_dir, load_scene
 from jaxrt.bench.suite import RAY_KINDS, BenchConfig, bench_scene
+from jaxrt.bench.timing import progress
 
 __all__ = ["main", "parse_args", "DEFAULT_SCENES"]
 
@@ -138,7 +139,7 @@ def run(config: BenchConfig, *, verbose: bool = True) -> dict[str, Any]:
         "skipped": {},
     }
     data_dir = config.data_dir if config.data_dir is not None else default_data_dir()
-    for name in config.scenes:
+    for name in progress(config.scenes, enabled=not verbose, desc="scenes"):  # --quiet: a bar instead of the log
         if name in SHARED_MESHES and (data_dir is None or not os.path.isdir(data_dir)):
             results["skipped"][name] = "no shared data folder (set --data-dir or JAXRT_DATA_DIR)"
             continue

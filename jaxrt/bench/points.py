@@ -31,7 +31,7 @@ import numpy as np
 import jaxrt as rt
 from jaxrt.bench.report import machine_info
 from jaxrt.bench.scenes import PROCEDURAL, SHARED_MESHES, load_scene
-from jaxrt.bench.timing import timed
+from jaxrt.bench.timing import progress, timed
 
 __all__ = ["main", "query_points", "reference_closest", "reference_winding", "bench_points"]
 
@@ -289,7 +289,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     sizes = {**(_QUICK if args.quick else _DEFAULTS), **{k: v for k, v in given.items() if v is not None}}
     results: dict[str, Any] = {"machine": machine_info(), "config": dict(sizes, seed=args.seed), "scenes": []}
     results["skipped"] = {}
-    for name in args.scenes:
+    for name in progress(args.scenes, desc="scenes"):
         try:
             results["scenes"].append(bench_points(name, sizes, args.data_dir, args.seed, peers=args.peers))
         except FileNotFoundError as error:

@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import statistics
+import sys
 import time
-from collections.abc import Callable
-from typing import Any, NamedTuple
+from collections.abc import Callable, Iterable
+from typing import Any, NamedTuple, TypeVar
 
 import jax
 
-__all__ = ["Timing", "timed"]
+__all__ = ["Timing", "progress", "timed"]
+
+T = TypeVar("T")
 
 
 class Timing(NamedTuple):
@@ -55,3 +58,15 @@ def timed(fn: Callable[[], Any], repeats: int) -> tuple[Timing, Any]:
         times.append(time.perf_counter() - start)
     median = statistics.median(times) if times else first
     return Timing(first, median, tuple(times)), out
+
+
+def progress(iterable: Iterable[T], *, enabled: bool = True, **options: Any) -> Iterable[T]:
+    """``iterable`` with a transient tqdm bar on stderr when ``enabled``, stderr is a terminal and tqdm is
+    installed (``pip install 'jaxrt[bench]'``); else ``iterable`` itself, so logs and tests stay clean."""
+    if not enabled or not sys.stderr.isatty():
+        return iterable
+    try:
+        from tqdm import tqdm
+    except ImportError:
+        return iterable
+    return tqdm(iterable, leave=False, dynamic_ncols=True, **options)
