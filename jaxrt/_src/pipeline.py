@@ -169,23 +169,13 @@ def trace(intersector: Any, view: SceneView, rays: SanitizedRays) -> TraversalRe
     """Run the traversal the intersector and scene call for (a compiled one where it covers them)."""
     backend = resolve_backend(intersector)
     covered = kernel_declines(intersector, view.geometry_info) is None and not view.layout.motion
-    detached = lax.stop_gradient
-    if backend == "cpu" and covered and view.traversal.node_lower.dtype == rays.origin.dtype:
-        from jaxrt._src.traversal import cpu
+    if backend == "cpu":  # the CPU loop is compiled per float type: geometry and rays must share one
+        covered = covered and view.traversal.node_lower.dtype == rays.origin.dtype
+    if backend != "portable" and covered:
+        from jaxrt._src.traversal import cpu, gpu
 
-        return cpu.trace_scene(
-            jax.tree_util.tree_map(detached, view.traversal),
-            view.layout,
-            *(detached(a) for a in (rays.origin, rays.direction, rays.t_min, rays.t_max)),
-            rays.enabled,
-            rays.mask,
-            any_hit=intersector.accept_any_intersection,
-            cull=intersector.cull,
-        )
-    if backend == "gpu" and covered:
-        from jaxrt._src.traversal import gpu
-
-        return gpu.trace_scene(
+        detached = lax.stop_gradient
+        return (cpu if backend == "cpu" else gpu).trace_scene(
             jax.tree_util.tree_map(detached, view.traversal),
             view.layout,
             *(detached(a) for a in (rays.origin, rays.direction, rays.t_min, rays.t_max)),
