@@ -185,8 +185,11 @@ def test_closest_point_batch_shapes_jit_vmap(sphere):
     assert float(single.distance) == float(flat.distance[0])
     jitted = jax.jit(lambda p, s: rt.closest_point(p, s))(points[:24], structure)
     np.testing.assert_array_equal(np.asarray(jitted.distance), np.asarray(flat.distance))
-    mapped = jax.vmap(lambda p: rt.closest_point(p, structure).distance)(points[:24].reshape(4, 6, 3))
-    np.testing.assert_array_equal(np.asarray(mapped).reshape(-1), np.asarray(flat.distance))
+    mapped = jax.vmap(lambda p: rt.closest_point(p, structure))(points[:24].reshape(4, 6, 3))
+    np.testing.assert_array_equal(np.asarray(mapped.primitive_id).reshape(-1), np.asarray(flat.primitive_id))
+    # The same primitive; its distance comes from a differently compiled program, which jax 0.12 may contract
+    # into other multiply-adds: equal within a few float32 ulps.
+    np.testing.assert_allclose(np.asarray(mapped.distance).reshape(-1), np.asarray(flat.distance), rtol=5e-7, atol=0)
 
 
 def test_closest_point_gradients_match_finite_differences():
