@@ -124,6 +124,27 @@ def _accessor(gltf, buffers: list[bytes], index: int, name: str) -> np.ndarray:
     return data[:, 0] if width == 1 else data
 
 
+def primitive_faces(gltf, buffers, primitive, count: int, where: str, owner: str = "load_gltf") -> np.ndarray:
+    """Vertex indices ``(T, 3)`` of a triangle, strip or fan primitive with ``count`` vertices, checked in range
+    (a ``ValueError`` that names ``owner`` and ``where`` otherwise)."""
+    mode = _TRIANGLES if primitive.mode is None else primitive.mode
+    if primitive.indices is None:
+        indices = np.arange(count)
+    else:
+        indices = _accessor(gltf, buffers, primitive.indices, f"{where} indices").astype(np.int64)
+    if mode == _TRIANGLES:
+        faces = indices[: len(indices) // 3 * 3].reshape(-1, 3)
+    elif mode == _STRIP:
+        i = np.arange(max(0, len(indices) - 2))
+        faces = np.stack([indices[i], indices[i + 1 + i % 2], indices[i + 2 - i % 2]], axis=-1)
+    else:
+        i = np.arange(1, max(1, len(indices) - 1))
+        faces = np.stack([np.full_like(i, indices[0]), indices[i], indices[i + 1]], axis=-1)
+    if faces.size and ((faces < 0) | (faces >= count)).any():
+        raise ValueError(f"{owner}: {where}: an index is out of range for {count} vertices")
+    return faces
+
+
 def _triangles(gltf, buffers, mesh_index: int) -> list[np.ndarray]:
     """Triangles ``(T, 3, 3)`` of each triangle primitive of a mesh (other modes are skipped)."""
     out = []
@@ -133,20 +154,7 @@ def _triangles(gltf, buffers, mesh_index: int) -> list[np.ndarray]:
             continue
         where = f"mesh {mesh_index} primitive {k}"
         positions = _accessor(gltf, buffers, primitive.attributes.POSITION, f"{where} POSITION").astype(np.float64)
-        if primitive.indices is None:
-            indices = np.arange(positions.shape[0])
-        else:
-            indices = _accessor(gltf, buffers, primitive.indices, f"{where} indices").astype(np.int64)
-        if mode == _TRIANGLES:
-            faces = indices[: len(indices) // 3 * 3].reshape(-1, 3)
-        elif mode == _STRIP:
-            i = np.arange(max(0, len(indices) - 2))
-            faces = np.stack([indices[i], indices[i + 1 + i % 2], indices[i + 2 - i % 2]], axis=-1)
-        else:
-            i = np.arange(1, max(1, len(indices) - 1))
-            faces = np.stack([np.full_like(i, indices[0]), indices[i], indices[i + 1]], axis=-1)
-        if faces.size and ((faces < 0) | (faces >= positions.shape[0])).any():
-            raise ValueError(f"load_gltf: {where}: an index is out of range for {positions.shape[0]} vertices")
+        faces = primitive_faces(gltf, buffers, primitive, positions.shape[0], where)
         tri = positions[faces].astype(np.float32)
         if not np.isfinite(tri).all():
             raise ValueError(f"load_gltf: {where}: a vertex position is not finite")

@@ -19,7 +19,16 @@ from typing import Any
 
 import numpy as np
 
-from jaxrt._src.io.gltf import _STRIP, _TRIANGLES, _accessor, _is_invertible, _read_buffers, _trs
+from jaxrt._src.io.gltf import (
+    _FAN,
+    _STRIP,
+    _TRIANGLES,
+    _accessor,
+    _is_invertible,
+    _read_buffers,
+    _trs,
+    primitive_faces,
+)
 
 __all__ = ["GltfMotion", "load_gltf_motion", "sample_channel"]
 
@@ -104,31 +113,12 @@ def sample_channel(inputs: np.ndarray, outputs: np.ndarray, interpolation: str, 
     return (1.0 - s) * values[k] + s * values[k + 1]
 
 
-def _faces(gltf, buffers, primitive, count: int, where: str) -> np.ndarray | None:
-    mode = _TRIANGLES if primitive.mode is None else primitive.mode
-    if primitive.indices is None:
-        indices = np.arange(count)
-    else:
-        indices = _accessor(gltf, buffers, primitive.indices, f"{where} indices").astype(np.int64)
-    if mode == _TRIANGLES:
-        faces = indices[: len(indices) // 3 * 3].reshape(-1, 3)
-    elif mode == _STRIP:
-        i = np.arange(max(0, len(indices) - 2))
-        faces = np.stack([indices[i], indices[i + 1 + i % 2], indices[i + 2 - i % 2]], axis=-1)
-    else:
-        i = np.arange(1, max(1, len(indices) - 1))
-        faces = np.stack([np.full_like(i, indices[0]), indices[i], indices[i + 1]], axis=-1)
-    if faces.size and ((faces < 0) | (faces >= count)).any():
-        raise ValueError(f"load_gltf_motion: {where}: an index is out of range for {count} vertices")
-    return faces
-
-
 def _morphed_triangles(gltf, buffers, mesh_index: int, weights: np.ndarray) -> np.ndarray | None:
     """``(K, T, 3, 3)`` triangles of a mesh with morph ``weights`` ``(K, targets)`` applied to its positions."""
     parts = []
     for p, primitive in enumerate(gltf.meshes[mesh_index].primitives):
         mode = _TRIANGLES if primitive.mode is None else primitive.mode
-        if mode not in (_TRIANGLES, _STRIP, 6) or primitive.attributes.POSITION is None:
+        if mode not in (_TRIANGLES, _STRIP, _FAN) or primitive.attributes.POSITION is None:
             continue
         where = f"mesh {mesh_index} primitive {p}"
         base = _accessor(gltf, buffers, primitive.attributes.POSITION, f"{where} POSITION").astype(np.float64)
@@ -138,7 +128,7 @@ def _morphed_triangles(gltf, buffers, mesh_index: int, weights: np.ndarray) -> n
             if index is not None and i < weights.shape[1]:
                 delta = _accessor(gltf, buffers, index, f"{where} target {i}").astype(np.float64)
                 positions += weights[:, i, None, None] * delta[None]
-        faces = _faces(gltf, buffers, primitive, base.shape[0], where)
+        faces = primitive_faces(gltf, buffers, primitive, base.shape[0], where, owner="load_gltf_motion")
         if faces.size:
             parts.append(positions[:, faces])
     if not parts:
