@@ -362,14 +362,15 @@ def _classify(inst_ptr, imotion_ptr, child, hit, n_primitives, ray_mask, time, I
     instance = is_leaf & (k >= n_primitives)
     g = k - n_primitives
     bits = tl.load(inst_ptr + g * 16 + 14, mask=hit & instance, other=0.0).to(tl.int32, bitcast=True)
-    visible = (bits & ray_mask) != 0
     if IWIDTH > 0:
         read = hit & instance
         start = tl.load(imotion_ptr + g * IWIDTH, mask=read, other=0.0)
         end = tl.load(imotion_ptr + g * IWIDTH + 1, mask=read, other=0.0)
         flags = tl.load(imotion_ptr + g * IWIDTH + 3, mask=read, other=0.0).to(tl.int32, bitcast=True)
-        visible = visible & _instance_visible(time, start, end, flags)
-    inner = hit & ((child >= 0) | (instance & visible))
+        visible = ((bits & ray_mask) != 0) & _instance_visible(time, start, end, flags)
+        inner = hit & ((child >= 0) | (instance & visible))
+    else:
+        inner = hit & ((child >= 0) | (instance & ((bits & ray_mask) != 0)))
     return hit & primitive, inner, tl.where(instance, -1 - g, child)
 
 
