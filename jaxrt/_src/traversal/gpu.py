@@ -9,12 +9,16 @@ The intersector picks this path (``backend="auto"`` or ``"gpu"``) when :func:`un
 ``None``: the default JAX backend is a GPU, Triton and jax-triton import (``pip install jaxrt[gpu]``), geometry
 is float32, and the intersector asks only for what the kernel covers (triangles, nearest and any hit, cull
 modes and windings, ray intervals, masks and disabled rays, several geometries per structure, instances over
-any number of levels, and the tags of :data:`COVERED_TAGS`). Triton is imported only here and only when a trace
-is compiled, so CPU-only installs never import it.
+any number of levels, keyframe motion of triangles and instances at each ray's time, and the tags of
+:data:`COVERED_TAGS`). Triton is imported only here and only when a trace is compiled, so CPU-only installs
+never import it.
 
 The kernel traces the scene's binary nodes by default; ``KernelOptions(node_width=4)`` traces a 4-wide tree
 with leaf clusters collapsed from them on every call (slower on an H200: docs/performance.md). The 4-wide
-layout covers one primitive structure only: instanced scenes and batches of scenes take the binary layout.
+layout covers one primitive structure only: instanced scenes, scenes with keyframe motion and batches of
+scenes take the binary layout. With keyframe motion the kernel also reads the keyframe rows of
+:mod:`jaxrt._src.traversal.packed` (nodes, triangles, instance transforms) and each ray's time: pass ``time``
+and :func:`leaf_motion` to :func:`trace_scene`.
 
 What the kernel computes, and why it equals the portable path, is in
 :mod:`jaxrt._src.traversal.triton_kernel`; the arrays it reads are in :mod:`jaxrt._src.traversal.packed`.

@@ -34,6 +34,20 @@ lane]`` scratch buffer), moves it by the instance's world-to-object rows in the 
 operations, and recomputes the reciprocal direction and shear with correctly rounded divisions, so every
 level sees the values the portable path computes. Each new nearest hit copies the current instance chain
 into the output.
+
+Keyframe motion (compile-time constants ``NODE_KEYS``, ``LEAF_KEYS`` and ``IWIDTH``; all 0 for a static
+scene, whose kernel is then the code generated without them): the ray block carries the ray's keyframe
+segment and weight for the scene's primitive motion (computed by the portable path's own JAX function) and
+its time. A primitive structure's node rows hold every keyframe's child boxes, node-major, and a step blends
+the two around the ray's time as the portable ``step._node_boxes_at`` does (equal corners kept as they are);
+leaf triangles are blended as ``motion.LeafKeys`` blends them, ``(1 - w) a + w b``, and a moving leaf is not
+hit outside the range on a "vanish" border. Below instances the node boxes are the union boxes (as in the
+portable path) and the leaves are blended the same way. A moving instance is visible only inside its table's
+range on a "vanish" border, and entering it moves the ray by the inverse of its keyframe transforms blended at
+the ray's time: the segment and weight computed as ``motion.keyframe_position`` computes them (correctly
+rounded division), the blend, and the adjugate over the determinant of ``instances.invert_transform``,
+operation for operation. Without contraction these are the portable path's floats wherever XLA evaluates the
+same operations in the same order.
 """
 
 from __future__ import annotations
