@@ -266,6 +266,42 @@ def test_moving_and_static_instances_two_levels(moving_level, kernel_here):
 
 
 @kernel_test
+def test_vmap_over_moving_scenes_is_one_launch(kernel_here):
+    """``jax.vmap`` over (rays, scene) pairs of moving scenes: the keyframe rows are concatenated with the
+    scenes (one launch), and each scene's answer is its own portable traversal's."""
+    spec = SPECS[1]
+    structures = [moving_mesh(np.random.default_rng(60 + s), 2, spec, count=6) for s in range(2)]
+    views = [scene_view(s) for s in structures]
+    layout = views[0].layout
+    assert views[1].layout == layout
+    times = _times(2)
+    per_scene = [aimed_rays(s, spec, 6, times, 70 + i) for i, s in enumerate(structures)]
+    stack = lambda *xs: jax.tree.map(lambda *a: jnp.stack(a), *xs)  # noqa: E731
+    scenes = stack(*[v.traversal for v in views])
+    keys = jnp.stack([gpu.leaf_motion(v).triangle for v in views])
+    moving = jnp.stack([gpu.leaf_motion(v).moving for v in views])
+
+    def trace(scene, triangle, flags, *ray_args):
+        *geometry, mask, time = ray_args
+        motion = gpu.LeafMotion(spec, triangle, flags)
+        return gpu.trace_scene(scene, layout, *geometry, mask, any_hit=False, cull=0, time=time, leaf_motion=motion)
+
+    got = jax.jit(jax.vmap(trace))(scenes, keys, moving, *stack(*per_scene))
+    if not ON_GPU:
+        assert [n for _, n in LAUNCHES] == [64], LAUNCHES  # 2 x 24 rays in one launch (padded to 2 x 32)
+    intersector = rt.Intersector(rt.tags.primitive_motion)
+    for i, view in enumerate(views):
+        one = jax.tree.map(lambda a, i=i: a[i], got)
+        tester = leaf_tests.leaf_tester(intersector, view)
+        fn = functools.partial(drivers.traverse, view.traversal, layout, tester, any_hit=False)
+        want = jax.jit(jax.vmap(fn))(*per_scene[i])
+        for name in ("leaf", "nodes_visited", "primitives_tested"):
+            np.testing.assert_array_equal(np.asarray(getattr(one, name)), np.asarray(getattr(want, name)), name)
+        np.testing.assert_allclose(np.asarray(one.distance), np.asarray(want.distance), rtol=1e-6, atol=1e-7)
+        assert (np.asarray(one.leaf) >= 0).sum() > 12
+
+
+@kernel_test
 def test_intersector_takes_the_kernel_for_motion(kernel_here, monkeypatch):
     """``Intersector(backend="gpu")`` on a scene with both kinds of motion: the kernel runs (a launch with
     the motion constants) and every field, ``time`` included, equals the portable path's."""
