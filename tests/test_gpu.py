@@ -256,7 +256,7 @@ def _emulated_kernel(calls, *args, config):
     from jaxrt._src.traversal.scene import TraversalLayout, TraversalScene
 
     node_lower, node_upper, node_children, _, leaf_triangle, *instance_arrays = args[:9]
-    origin, direction, t_min, t_max, enabled, mask = args[9:15]
+    origin, direction, t_min, t_max, enabled, mask = args[gpu.SCENE_ARGS : gpu.SCENE_ARGS + 6]
     calls.append((origin.shape[0], config))
     if config.roots:  # a batch of scenes: the launch is recorded, the result left to the interpreter tests
         n = origin.shape[0]

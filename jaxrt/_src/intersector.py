@@ -375,10 +375,11 @@ def _check_geometry(intersector: Intersector, structure: Any) -> None:
     """The structure's kinds, curves and user functions against the intersector's declarations."""
     prims = primitive_structures(structure)
     if intersector.backend in ("gpu", "cpu"):
-        reason = pipeline.kernel_declines(intersector, tuple(g for s in prims for g in s.geometry_info))
+        infos = tuple(g for s in prims for g in s.geometry_info)
+        motion = bool(getattr(structure, "has_instance_motion", False))
+        reason = pipeline.kernel_declines(intersector, infos, intersector.backend, motion)
         if reason:
-            also = " (nor by the CPU traversal, which covers the same cases)" if intersector.backend == "cpu" else ""
-            raise ValueError(f"Intersector: backend={intersector.backend!r} cannot run: {reason}{also}")
+            raise ValueError(f"Intersector: backend={intersector.backend!r} cannot run: {reason}")
     _check_user_functions(intersector, prims)
     _check_opacity_options(intersector, structure)
     if intersector.has("primitive_data") and all(s.leaf_primitive_data is None for s in prims):

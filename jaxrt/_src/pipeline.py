@@ -84,27 +84,29 @@ class SanitizedRays:
         self.time = jnp.where(on, rays.time, 0.0)  # read only by scenes with keyframe motion
 
 
-def kernel_declines(intersector: Any, geometry_info: tuple) -> str | None:
-    """Why the compiled traversals (the GPU kernel, the CPU traversal) do not cover a scene of these geometries
-    with this intersector (``None``: they do).
+def kernel_declines(intersector: Any, geometry_info: tuple, backend: str = "gpu", motion: bool = False) -> str | None:
+    """Why the compiled traversal of ``backend`` (``"gpu"``: the GPU kernel, ``"cpu"``: the CPU traversal)
+    does not cover a scene of these geometries with this intersector (``None``: it does); ``motion`` says
+    that the scene has keyframe motion (primitive motion is also read from the geometries).
 
     The one place that decides their coverage (with :func:`jaxrt._src.traversal.gpu.unavailable_reason` and
-    :func:`jaxrt._src.traversal.cpu.unavailable_reason` for the machine and the tags). The reasons name the GPU
-    kernel; the CPU traversal covers the same cases. Declined scenes take the portable traversal: curves,
-    bounding boxes with intersection functions and filters call JAX code per candidate, and the hit lists of
-    ``max_hits`` and counting are not in the compiled loops.
+    :func:`jaxrt._src.traversal.cpu.unavailable_reason` for the machine and the tags). Both cover the same
+    cases except keyframe motion, which only the GPU kernel traces. Declined scenes take the portable
+    traversal: curves, bounding boxes with intersection functions and filters call JAX code per candidate, and
+    the hit lists of ``max_hits`` and counting are not in the compiled loops.
     """
+    name = "CPU traversal" if backend == "cpu" else "GPU kernel"
     kinds = {g.kind for g in geometry_info}
     if "curve" in kinds:
-        return "curves are not covered by the GPU kernel"
+        return f"curves are not covered by the {name}"
     if "bounding_box" in kinds:
-        return "bounding-box geometry (intersection functions) is not covered by the GPU kernel"
+        return f"bounding-box geometry (intersection functions) is not covered by the {name}"
     if intersector.filter is not None and any(g.kind == "triangle" and not g.opaque for g in geometry_info):
-        return "filters on non-opaque geometry are not covered by the GPU kernel"
+        return f"filters on non-opaque geometry are not covered by the {name}"
     if intersector.max_hits is not None or intersector.counts_all:
-        return "multi-hit (max_hits) and counting are not covered by the GPU kernel"
-    if any(g.motion for g in geometry_info):
-        return "keyframe motion is not covered by the GPU kernel"
+        return f"multi-hit (max_hits) and counting are not covered by the {name}"
+    if backend == "cpu" and (motion or any(g.motion for g in geometry_info)):
+        return f"keyframe motion is not covered by the {name}"
     return None
 
 
@@ -168,13 +170,16 @@ def _trace_portable(intersector: Any, view: SceneView, rays: SanitizedRays) -> T
 def trace(intersector: Any, view: SceneView, rays: SanitizedRays) -> TraversalResult:
     """Run the traversal the intersector and scene call for (a compiled one where it covers them)."""
     backend = resolve_backend(intersector)
-    covered = kernel_declines(intersector, view.geometry_info) is None and not view.layout.motion
+    covered = kernel_declines(intersector, view.geometry_info, backend, view.layout.motion) is None
     if backend == "cpu":  # the CPU loop is compiled per float type: geometry and rays must share one
         covered = covered and view.traversal.node_lower.dtype == rays.origin.dtype
     if backend != "portable" and covered:
         from jaxrt._src.traversal import cpu, gpu
 
         detached = lax.stop_gradient
+        moving = {}  # keyframe motion (GPU kernel only): each ray's time and the triangle keyframes
+        if view.layout.motion:
+            moving = dict(time=detached(rays.time), leaf_motion=gpu.leaf_motion(view))
         return (cpu if backend == "cpu" else gpu).trace_scene(
             jax.tree_util.tree_map(detached, view.traversal),
             view.layout,
@@ -183,6 +188,7 @@ def trace(intersector: Any, view: SceneView, rays: SanitizedRays) -> TraversalRe
             rays.mask,
             any_hit=intersector.accept_any_intersection,
             cull=intersector.cull,
+            **moving,
         )
     return _trace_portable(intersector, view, rays)
 

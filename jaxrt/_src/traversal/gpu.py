@@ -9,12 +9,16 @@ The intersector picks this path (``backend="auto"`` or ``"gpu"``) when :func:`un
 ``None``: the default JAX backend is a GPU, Triton and jax-triton import (``pip install jaxrt[gpu]``), geometry
 is float32, and the intersector asks only for what the kernel covers (triangles, nearest and any hit, cull
 modes and windings, ray intervals, masks and disabled rays, several geometries per structure, instances over
-any number of levels, and the tags of :data:`COVERED_TAGS`). Triton is imported only here and only when a trace
-is compiled, so CPU-only installs never import it.
+any number of levels, keyframe motion of triangles and instances at each ray's time, and the tags of
+:data:`COVERED_TAGS`). Triton is imported only here and only when a trace is compiled, so CPU-only installs
+never import it.
 
 The kernel traces the scene's binary nodes by default; ``KernelOptions(node_width=4)`` traces a 4-wide tree
 with leaf clusters collapsed from them on every call (slower on an H200: docs/performance.md). The 4-wide
-layout covers one primitive structure only: instanced scenes and batches of scenes take the binary layout.
+layout covers one primitive structure only: instanced scenes, scenes with keyframe motion and batches of
+scenes take the binary layout. With keyframe motion the kernel also reads the keyframe rows of
+:mod:`jaxrt._src.traversal.packed` (nodes, triangles, instance transforms) and each ray's time: pass ``time``
+and :func:`leaf_motion` to :func:`trace_scene`.
 
 What the kernel computes, and why it equals the portable path, is in
 :mod:`jaxrt._src.traversal.triton_kernel`; the arrays it reads are in :mod:`jaxrt._src.traversal.packed`.
@@ -41,6 +45,7 @@ import numpy as np
 from jax import lax
 
 from jaxrt._src import numerics
+from jaxrt._src.motion import KeyframePosition, spec_position
 from jaxrt._src.primitives import box
 from jaxrt._src.traversal import packed
 from jaxrt._src.traversal.scene import TraversalLayout, TraversalResult, TraversalScene
@@ -58,13 +63,23 @@ __all__ = [
 #: Intersector tags whose fields the GPU path can produce (the intersector re-computes them from the leaf and
 #: the instance chain).
 COVERED_TAGS = frozenset(
-    {"triangle_data", "stats", "primitive_data", "instancing", "max_levels", "world_space_data", "user_instance_id"}
+    {
+        "triangle_data",
+        "stats",
+        "primitive_data",
+        "instancing",
+        "max_levels",
+        "world_space_data",
+        "user_instance_id",
+        "primitive_motion",
+        "instance_motion",
+    }
 )
 #: Most programs per launch; larger batches are walked with a stride, which bounds the scratch buffers (stack,
 #: and per-level rays below instances) to ``MAX_PROGRAMS * rays_per_program`` times the entries per ray.
 MAX_PROGRAMS = 1 << 15
 #: Leading arguments of the kernel call that come from the scene (the rest are per ray).
-SCENE_ARGS = 9
+SCENE_ARGS = 14
 
 
 @dataclasses.dataclass(frozen=True)
@@ -116,6 +131,14 @@ class _Config:
     primitive_leaves: int  # leaves below this are primitives, the rest instances
     options: KernelOptions
     roots: bool  # each ray starts at its own root node (instanced scenes, batches of scenes)
+    node_keys: int = 0  # keyframes of the node boxes (0: static boxes)
+    leaf_keys: int = 0  # keyframes of the leaf triangles (0: static triangles)
+    instance_keys: int = 0  # keyframes of the instance transforms (0: no instance motion)
+    leaf_spec: Any = None  # the MotionSpec of the node and leaf keyframes
+
+    @property
+    def motion(self) -> bool:
+        return bool(self.node_keys or self.leaf_keys or self.instance_keys)
 
 
 class KernelCall(NamedTuple):
@@ -168,8 +191,17 @@ def _check_indices(nodes: int, instances: int, levels: int) -> None:
         )
 
 
-def kernel_call(nodes: jax.Array, triangles: jax.Array, instances: jax.Array, rays: jax.Array, config: _Config):
-    """The :class:`KernelCall` tracing the packed ``rays`` block through the packed scene."""
+def kernel_call(
+    nodes: jax.Array,
+    triangles: jax.Array,
+    instances: jax.Array,
+    rays: jax.Array,
+    config: _Config,
+    instance_motion: jax.Array | None = None,
+):
+    """The :class:`KernelCall` tracing the packed ``rays`` block through the packed scene (with keyframe
+    motion, ``nodes`` and ``triangles`` are the rows per keyframe and ``instance_motion`` the instance motion
+    rows: :mod:`jaxrt._src.traversal.packed`)."""
     size = rays.shape[1]
     options = config.options
     lanes = options.rays_per_program
@@ -205,13 +237,18 @@ def kernel_call(nodes: jax.Array, triangles: jax.Array, instances: jax.Array, ra
         CLAMP=float(clamp),
         HUGE=float(np.float32(1.0 / numerics.RECIPROCAL_CLAMP)),
         CLAMPED=float(np.float32(1.0) / clamp),
+        NODE_KEYS=config.node_keys,
+        LEAF_KEYS=config.leaf_keys,
+        IWIDTH=4 + 12 * config.instance_keys if config.instance_keys else 0,
     )
     extra = (
         jax.ShapeDtypeStruct((max(1, levels * size),), jnp.int32),  # instance chain, (levels, size)
         jax.ShapeDtypeStruct((programs * config.stack * lanes,), jnp.int32),  # stack scratch
         jax.ShapeDtypeStruct((max(1, programs * (levels + 1) * 8 * lanes),), jnp.float32),  # per-level rays
     )
-    args = (nodes, triangles, instances, rays, size, programs, config.primitive_leaves)
+    if instance_motion is None:
+        instance_motion = jnp.zeros((1,), jnp.float32)
+    args = (nodes, triangles, instances, rays, size, programs, config.primitive_leaves, instance_motion)
     return KernelCall("trace_kernel", programs, args, results + extra, params)
 
 
@@ -247,18 +284,42 @@ def _kernel(*args, config: _Config) -> tuple[jax.Array, ...]:
     Returns ``(distance, leaf, instances (n, levels), visited, tested, overflow)``.
     """
     (node_lower, node_upper, node_children, node_range, leaf_triangle, world_to_object, child_root, facing,
-     instance_mask, origin, direction, t_min, t_max, enabled, mask, root) = args  # fmt: skip
+     instance_mask, node_keys_lower, node_keys_upper, leaf_keys, leaf_moving, instance_motion, origin, direction,
+     t_min, t_max, enabled, mask, time, root) = args  # fmt: skip
     n = origin.shape[0]
     lanes = config.options.rays_per_program
     size = max(lanes, -(-n // lanes) * lanes)
-    nodes = pack_nodes(config.options, node_lower, node_upper, node_children, node_range)
-    triangles = packed.pack_triangles(leaf_triangle)
+    if config.node_keys:
+        nodes = packed.pack_node_keys(node_keys_lower, node_keys_upper, node_children)
+    else:
+        nodes = pack_nodes(config.options, node_lower, node_upper, node_children, node_range)
+    if config.leaf_keys:
+        triangles = packed.pack_triangle_keys(leaf_keys, leaf_moving)
+    else:
+        triangles = packed.pack_triangles(leaf_triangle)
     instances = packed.pack_instances(world_to_object, child_root, facing, instance_mask)
-    extended = config.levels > 0 or config.roots
+    extended = config.levels > 0 or config.roots or config.motion
+    motion = None
+    if config.motion:
+        if config.leaf_keys:  # the scene's keyframe segment at each ray's time, as the portable path finds it
+            position = spec_position(config.leaf_spec, config.leaf_keys, time)
+        else:
+            zero = jnp.zeros(time.shape, jnp.int32)
+            position = KeyframePosition(zero, zero.astype(jnp.float32), jnp.ones(time.shape, bool))
+        motion = (position.index, position.weight, position.visible, time)
     rays = packed.pack_rays(
-        origin, direction, t_min, t_max, enabled, size, mask=mask if extended else None, root=root if extended else None
+        origin,
+        direction,
+        t_min,
+        t_max,
+        enabled,
+        size,
+        mask=mask if extended else None,
+        root=root if extended else None,
+        motion=motion,
     )
-    out = _launch(kernel_call(nodes, triangles, instances, rays, config))
+    moving_instances = instance_motion if config.instance_keys else None
+    out = _launch(kernel_call(nodes, triangles, instances, rays, config, moving_instances))
     distance, leaf, visited, tested, overflow = (a[:n] for a in out[:5])
     if config.levels and len(out) > 5:
         chain = out[5][: config.levels * size].reshape(config.levels, size)[:, :n].T
@@ -275,7 +336,7 @@ def _concatenate_scenes(scene: list[jax.Array], root: jax.Array) -> tuple[list[j
     (``(B, n)`` to ``(B n,)``), ``P`` and ``G``.
     """
     (node_lower, node_upper, node_children, node_range, leaf_triangle, world_to_object, child_root, facing,
-     instance_mask) = scene  # fmt: skip
+     instance_mask, *motion) = scene  # fmt: skip
     b, m = node_children.shape[:2]
     p, g = leaf_triangle.shape[1], child_root.shape[1]
     if b * max(m, 1) >= 2**31 or b * (p + g) >= 2**31:
@@ -287,6 +348,7 @@ def _concatenate_scenes(scene: list[jax.Array], root: jax.Array) -> tuple[list[j
     flat = lambda a: a.reshape(-1, *a.shape[2:])  # noqa: E731
     arrays = [node_lower, node_upper, children, node_range, leaf_triangle, world_to_object]
     arrays += [child_root + index[:, None] * m, facing, instance_mask]
+    arrays += motion  # keyframe rows: node-, leaf- and instance-major, so they hold no indices to move
     return [flat(a) for a in arrays], flat(root + index[:, None] * m), p, g
 
 
@@ -334,6 +396,55 @@ def _traversal(config: _Config):
     return call
 
 
+class LeafMotion(NamedTuple):
+    """The triangle keyframes of a scene with primitive motion, as the kernel reads them."""
+
+    spec: Any  # the MotionSpec (static)
+    triangle: jax.Array  # (K, P, 3, 3) every primitive leaf's triangle at each keyframe
+    moving: jax.Array  # (P,) bool: the leaf's geometry moves (it vanishes outside the range on a "vanish" border)
+
+
+def leaf_motion(view: Any) -> LeafMotion | None:
+    """The :class:`LeafMotion` of a :class:`~jaxrt._src.scene_view.SceneView` (``None`` without primitive
+    motion): the keyframes the portable ``MotionLeaves`` blends, and its moving-leaf flags."""
+    motion = view.leaves.motion
+    if motion is None:
+        return None
+    table = view.slot_table(view.slots_where(lambda g: g.motion))
+    moving = view.leaf_flag(table, jnp.arange(motion.triangle.shape[1]))
+    return LeafMotion(motion.spec, lax.stop_gradient(motion.triangle), moving)
+
+
+def _motion_arguments(scene: TraversalScene, layout: TraversalLayout, leaves: LeafMotion | None, config: _Config):
+    """The kernel's keyframe arrays (node-, leaf- and instance-major; small placeholders where the scene has
+    none) and the configuration with their keyframe counts."""
+    dtype = jnp.float32
+    node_lower = node_upper = jnp.zeros((1, 1, 2, 3), dtype)
+    leaf_keys = jnp.zeros((1, 1, 3, 3), dtype)
+    leaf_moving = jnp.zeros((1,), bool)
+    instance_motion = jnp.zeros((1, 4), dtype)
+    changes = {}
+    if leaves is not None:
+        leaf_keys = jnp.swapaxes(leaves.triangle, 0, 1)
+        leaf_moving = leaves.moving
+        changes.update(leaf_keys=int(leaves.triangle.shape[0]), leaf_spec=leaves.spec)
+    if scene.node_motion is not None:
+        lower, upper = scene.node_motion
+        if leaves is None or layout.node_spec != leaves.spec or lower.shape[0] != leaves.triangle.shape[0]:
+            raise ValueError(
+                "traversal.gpu.trace_scene: node keyframes need the triangle keyframes of the same motion spec"
+            )
+        node_lower, node_upper = jnp.swapaxes(lower, 0, 1), jnp.swapaxes(upper, 0, 1)
+        changes.update(node_keys=int(lower.shape[0]))
+    motion = scene.instance_motion
+    if motion is not None and motion.keys.shape[0]:
+        instance_motion = packed.pack_instance_motion(
+            motion.keys, motion.count, motion.start, motion.end, motion.vanish_start, motion.vanish_end, motion.moving
+        )
+        changes.update(instance_keys=int(motion.keys.shape[1]))
+    return (node_lower, node_upper, leaf_keys, leaf_moving, instance_motion), dataclasses.replace(config, **changes)
+
+
 def trace_scene(
     scene: TraversalScene,
     layout: TraversalLayout,
@@ -347,6 +458,8 @@ def trace_scene(
     any_hit: bool,
     cull: int,
     options: KernelOptions | None = None,
+    time: jax.Array | None = None,
+    leaf_motion: LeafMotion | None = None,
 ) -> TraversalResult:
     """Trace rays through a scene of any instance depth with the GPU kernel.
 
@@ -361,7 +474,11 @@ def trace_scene(
       cull: 0 culls nothing, +1 clockwise triangles, -1 counterclockwise ones; below instances the sense is
         multiplied by the chain's ``instance_facing``.
       options: code-generation choices (static); ``None`` takes :data:`DEFAULT_OPTIONS` at call time. Scenes
-        with instances are traced with the binary layout whatever ``node_width`` says.
+        with instances or keyframe motion are traced with the binary layout whatever ``node_width`` says.
+      time: ``(N,)`` each ray's time; required where the layout has keyframe motion (``layout.motion``).
+      leaf_motion: the triangle keyframes of a scene with primitive motion (:func:`leaf_motion`); the node
+        keyframes (``scene.node_motion``) and instance keyframes (``scene.instance_motion``) come with the
+        scene.
 
     Returns:
       The portable traversal's :class:`~jaxrt._src.traversal.scene.TraversalResult`: the leaf (-1 on a miss),
@@ -371,7 +488,12 @@ def trace_scene(
     """
     options = options or DEFAULT_OPTIONS
     levels = int(layout.levels)
-    if options.node_width == 4 and (levels or scene.node_range is None or layout.root != 0):
+    if layout.motion and time is None:
+        raise ValueError("traversal.gpu.trace_scene: the scene has keyframe motion; pass each ray's time")
+    moving = layout.motion and (
+        scene.node_motion is not None or scene.instance_motion is not None or leaf_motion is not None
+    )
+    if options.node_width == 4 and (levels or scene.node_range is None or layout.root != 0 or moving):
         options = dataclasses.replace(options, node_width=2)
     node_range = scene.node_range if options.node_width == 4 else jnp.zeros((1, 2), jnp.int32)
     _check_indices(scene.node_children.shape[0], scene.instance_child_root.shape[0], levels)
@@ -385,6 +507,9 @@ def trace_scene(
         roots=levels > 0 or layout.root != 0,
     )
     detached = lax.stop_gradient
+    motion_args, config = _motion_arguments(scene, layout, leaf_motion, config)
+    if time is None:
+        time = jnp.zeros(origin.shape[:1], jnp.float32)
     args = (
         detached(scene.node_lower),
         detached(scene.node_upper),
@@ -395,9 +520,11 @@ def trace_scene(
         scene.instance_child_root,
         scene.instance_facing,
         scene.instance_mask,
+        *(detached(a) for a in motion_args),
         *(detached(a) for a in (origin, direction, t_min, t_max)),
         enabled,
         mask.astype(jnp.uint32),
+        detached(time).astype(jnp.float32),
         jnp.full(origin.shape[:1], layout.root, jnp.int32),
     )
     distance, leaf, instances, visited, tested, overflow = _traversal(config)(*args)

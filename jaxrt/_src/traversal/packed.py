@@ -46,6 +46,18 @@ sheared axes ``kx, ky, kz`` as small integers (11-13), and 1 for an enabled ray,
 block, ``(20, N)``, for instanced scenes and batches of scenes, adds the ray mask (row 15, uint32 bits),
 the ray's root node (16, int32 bits) and the direction (17-19), from which the kernel computes each
 level's ray.
+
+Keyframe motion adds, where the scene has it:
+
+- node rows per keyframe, ``(M K, 16)``: row ``i K + k`` is :func:`pack_nodes`'s row of node ``i`` with
+  keyframe ``k``'s child boxes (node-major, so that the two keyframes a ray blends are adjacent);
+- triangle rows per keyframe, ``(P K, 12)``: row ``j K + k`` is leaf ``j``'s triangle at keyframe ``k``, with
+  column 3 set to 1 where the leaf's geometry moves (it vanishes outside the range on a "vanish" border);
+- instance motion rows, ``(G, 4 + 12 K)``: the instance's start and end time, its keyframe count (int32 bits)
+  and flags (int32 bits: 1 moving, 2 vanishes before the start, 4 after the end), then its ``K``
+  object-to-world keyframe transforms row by row;
+- ray block rows 20-23 (the extended block): the keyframe segment of the scene's primitive motion at the
+  ray's time (int32 bits), its blend weight, 1 where moving leaves exist at that time (else 0), and the time.
 """
 
 from __future__ import annotations
@@ -71,6 +83,9 @@ __all__ = [
     "pack_triangles",
     "pack_instances",
     "pack_rays",
+    "pack_node_keys",
+    "pack_triangle_keys",
+    "pack_instance_motion",
 ]
 
 NODE_WIDTH = 16
@@ -82,6 +97,8 @@ INSTANCE_WIDTH = 16
 RAY_ROWS = 16
 #: Rows of the extended ray block (ray mask, root node and direction added).
 EXTENDED_RAY_ROWS = 20
+#: Rows of the extended ray block with keyframe motion (keyframe segment, weight, visibility and time added).
+MOTION_RAY_ROWS = 24
 
 
 def pack_nodes(node_lower: jax.Array, node_upper: jax.Array, node_children: jax.Array) -> jax.Array:
@@ -211,6 +228,39 @@ def pack_instances(world_to_object: jax.Array, child_root: jax.Array, facing: ja
     return rows if g else jnp.zeros((1, INSTANCE_WIDTH), jnp.float32)
 
 
+def pack_node_keys(lower_keys: jax.Array, upper_keys: jax.Array, node_children: jax.Array) -> jax.Array:
+    """The ``(M K, 16)`` node rows per keyframe from node-major keyframe boxes ``(M, K, 2, 3)``."""
+    m, k = lower_keys.shape[:2]
+    rows = jax.vmap(pack_nodes, in_axes=(1, 1, None), out_axes=1)(lower_keys, upper_keys, node_children)
+    return rows.reshape(m * k, NODE_WIDTH)
+
+
+def pack_triangle_keys(leaf_keys: jax.Array, moving: jax.Array) -> jax.Array:
+    """The ``(P K, 12)`` triangle rows per keyframe from leaf-major keyframe triangles ``(P, K, 3, 3)``, with
+    column 3 the leaf's moving flag."""
+    p, k = leaf_keys.shape[:2]
+    rows = pack_triangles(leaf_keys.reshape(p * k, 3, 3)).reshape(p, k, TRIANGLE_WIDTH)
+    rows = rows.at[:, :, 3].set(jnp.broadcast_to(moving.astype(jnp.float32)[:, None], (p, k)))
+    return rows.reshape(p * k, TRIANGLE_WIDTH)
+
+
+def pack_instance_motion(
+    keys: jax.Array,
+    count: jax.Array,
+    start: jax.Array,
+    end: jax.Array,
+    vanish_start: jax.Array,
+    vanish_end: jax.Array,
+    moving: jax.Array,
+) -> jax.Array:
+    """The ``(G, 4 + 12 K)`` instance motion rows (layout in the module docstring)."""
+    g, k = keys.shape[:2]
+    flags = moving.astype(jnp.int32) | (vanish_start.astype(jnp.int32) << 1) | (vanish_end.astype(jnp.int32) << 2)
+    bits = lax.bitcast_convert_type(jnp.stack([count.astype(jnp.int32), flags], axis=-1), jnp.float32)
+    times = jnp.stack([start, end], axis=-1).astype(jnp.float32)
+    return jnp.concatenate([times, bits, keys.astype(jnp.float32).reshape(g, 12 * k)], axis=-1)
+
+
 def pack_rays(
     origin: jax.Array,
     direction: jax.Array,
@@ -221,9 +271,11 @@ def pack_rays(
     *,
     mask: jax.Array | None = None,
     root: jax.Array | None = None,
+    motion: tuple[jax.Array, jax.Array, jax.Array, jax.Array] | None = None,
 ) -> jax.Array:
     """The ``(16, size)`` float32 ray block, or the extended ``(20, size)`` one when ``mask`` and ``root`` are
-    given; columns past the ray count are disabled rays.
+    given, or the ``(24, size)`` one when ``motion`` (keyframe segment, weight, visibility and time per ray)
+    is given too; columns past the ray count are disabled rays.
 
     The per-ray constants are computed here with the same functions as the portable traversal, so both
     paths start from bit-identical values.
@@ -238,6 +290,14 @@ def pack_rays(
     else:
         bits = jnp.stack([lax.bitcast_convert_type(mask.astype(jnp.uint32), jnp.int32), root.astype(jnp.int32)], -1)
         extra = [lax.bitcast_convert_type(bits, jnp.float32), direction.astype(jnp.float32)]
+        if motion is not None:
+            index, weight, visible, time = motion
+            extra += [
+                lax.bitcast_convert_type(index.astype(jnp.int32), jnp.float32)[:, None],
+                weight.astype(jnp.float32)[:, None],
+                visible.astype(jnp.float32)[:, None],
+                time.astype(jnp.float32)[:, None],
+            ]
     columns = jnp.concatenate(
         [
             origin.astype(jnp.float32),

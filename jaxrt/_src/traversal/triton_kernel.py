@@ -34,6 +34,20 @@ lane]`` scratch buffer), moves it by the instance's world-to-object rows in the 
 operations, and recomputes the reciprocal direction and shear with correctly rounded divisions, so every
 level sees the values the portable path computes. Each new nearest hit copies the current instance chain
 into the output.
+
+Keyframe motion (compile-time constants ``NODE_KEYS``, ``LEAF_KEYS`` and ``IWIDTH``; all 0 for a static
+scene, whose kernel is then the code generated without them): the ray block carries the ray's keyframe
+segment and weight for the scene's primitive motion (computed by the portable path's own JAX function) and
+its time. A primitive structure's node rows hold every keyframe's child boxes, node-major, and a step blends
+the two around the ray's time as the portable ``step._node_boxes_at`` does (equal corners kept as they are);
+leaf triangles are blended as ``motion.LeafKeys`` blends them, ``(1 - w) a + w b``, and a moving leaf is not
+hit outside the range on a "vanish" border. Below instances the node boxes are the union boxes (as in the
+portable path) and the leaves are blended the same way. A moving instance is visible only inside its table's
+range on a "vanish" border, and entering it moves the ray by the inverse of its keyframe transforms blended at
+the ray's time: the segment and weight computed as ``motion.keyframe_position`` computes them (correctly
+rounded division), the blend, and the adjugate over the determinant of ``instances.invert_transform``,
+operation for operation. Without contraction these are the portable path's floats wherever XLA evaluates the
+same operations in the same order.
 """
 
 from __future__ import annotations
@@ -90,6 +104,63 @@ def _quad(ptr, row, width: tl.constexpr, offset: tl.constexpr, mask, LANES: tl.c
 
 
 @triton.jit
+def _blend(a, b, rest, weight):
+    """``(1 - w) a + w b`` with ``rest = 1 - w``: the portable ``motion.blend``, operation for operation."""
+    return rest * a + weight * b
+
+
+@triton.jit
+def _box_blend(a, b, rest, weight):
+    """A node box corner blended as the portable ``_node_boxes_at`` does: equal corners kept as they are."""
+    return tl.where(a == b, a, _blend(a, b, rest, weight))
+
+
+@triton.jit
+def _box_quads(ptr, row, mask, rest, weight, LANES: tl.constexpr, VECTOR: tl.constexpr):
+    """The 12 box columns of node rows ``row`` and ``row + 1`` (two keyframes), blended."""
+    a0, a1, a2, a3 = _quad(ptr, row, 16, 0, mask, LANES, VECTOR)
+    a4, a5, a6, a7 = _quad(ptr, row, 16, 4, mask, LANES, VECTOR)
+    a8, a9, a10, a11 = _quad(ptr, row, 16, 8, mask, LANES, VECTOR)
+    b0, b1, b2, b3 = _quad(ptr, row + 1, 16, 0, mask, LANES, VECTOR)
+    b4, b5, b6, b7 = _quad(ptr, row + 1, 16, 4, mask, LANES, VECTOR)
+    b8, b9, b10, b11 = _quad(ptr, row + 1, 16, 8, mask, LANES, VECTOR)
+    return (
+        _box_blend(a0, b0, rest, weight),
+        _box_blend(a1, b1, rest, weight),
+        _box_blend(a2, b2, rest, weight),
+        _box_blend(a3, b3, rest, weight),
+        _box_blend(a4, b4, rest, weight),
+        _box_blend(a5, b5, rest, weight),
+        _box_blend(a6, b6, rest, weight),
+        _box_blend(a7, b7, rest, weight),
+        _box_blend(a8, b8, rest, weight),
+        _box_blend(a9, b9, rest, weight),
+        _box_blend(a10, b10, rest, weight),
+        _box_blend(a11, b11, rest, weight),
+    )
+
+
+@triton.jit
+def _key_position(time, start, end, count):
+    """The portable ``motion.keyframe_position`` of one instance table: ``(index, weight)``."""
+    segments = count - 1
+    span = segments.to(tl.float32)
+    position = tl.math.div_rn(time - start, end - start) * span
+    position = tl.where(position != position, 0.0, position)
+    clamped = tl.minimum(tl.maximum(position, 0.0), span)
+    index = tl.minimum(tl.maximum(tl.floor(clamped).to(tl.int32), 0), segments - 1)
+    return index, clamped - index.to(tl.float32)
+
+
+@triton.jit
+def _instance_visible(time, start, end, flags):
+    """Whether an instance exists at ``time``: a moving one (flag 1) is absent before ``start`` with flag 2
+    and after ``end`` with flag 4 (the portable ``_instance_visible``)."""
+    gone = ((time < start) & ((flags & 2) != 0)) | ((time > end) & ((flags & 4) != 0))
+    return (gone == 0) | ((flags & 1) == 0)
+
+
+@triton.jit
 def _triangle(
     tris_ptr,
     leaf,
@@ -106,19 +177,45 @@ def _triangle(
     t_min,
     t_max,
     facing,
+    key_index,
+    key_weight,
+    key_visible,
     CULL: tl.constexpr,
     LANES: tl.constexpr,
     VECTOR: tl.constexpr,
     LEVELS: tl.constexpr,
+    LEAF_KEYS: tl.constexpr,
 ):
     """Watertight test of leaf triangles: ``(hit, distance)``, the distance ``inf`` where not hit.
 
     Below instances (``LEVELS > 0``) the cull sense is ``facing * CULL`` per lane: the product of the
     instance chain's winding flips (or 0 where an instance disables culling) times the intersector's.
+    With keyframe motion (``LEAF_KEYS > 0``: ``tris_ptr`` holds the rows per keyframe) the triangle is the
+    blend of keyframes ``key_index`` and ``key_index + 1`` by ``key_weight`` (the portable ``LeafKeys``), and
+    a moving leaf is not hit where ``key_visible`` is false (a "vanish" border).
     """
-    ax, bx, cx, _ = _quad(tris_ptr, leaf, 12, 0, mask, LANES, VECTOR)
-    ay, by, cy, _ = _quad(tris_ptr, leaf, 12, 4, mask, LANES, VECTOR)
-    az, bz, cz, _ = _quad(tris_ptr, leaf, 12, 8, mask, LANES, VECTOR)
+    if LEAF_KEYS > 0:
+        row = leaf * LEAF_KEYS + key_index
+        ax, bx, cx, moving = _quad(tris_ptr, row, 12, 0, mask, LANES, VECTOR)
+        ay, by, cy, _ = _quad(tris_ptr, row, 12, 4, mask, LANES, VECTOR)
+        az, bz, cz, _ = _quad(tris_ptr, row, 12, 8, mask, LANES, VECTOR)
+        ax1, bx1, cx1, _ = _quad(tris_ptr, row + 1, 12, 0, mask, LANES, VECTOR)
+        ay1, by1, cy1, _ = _quad(tris_ptr, row + 1, 12, 4, mask, LANES, VECTOR)
+        az1, bz1, cz1, _ = _quad(tris_ptr, row + 1, 12, 8, mask, LANES, VECTOR)
+        rest = 1.0 - key_weight
+        ax = _blend(ax, ax1, rest, key_weight)
+        bx = _blend(bx, bx1, rest, key_weight)
+        cx = _blend(cx, cx1, rest, key_weight)
+        ay = _blend(ay, ay1, rest, key_weight)
+        by = _blend(by, by1, rest, key_weight)
+        cy = _blend(cy, cy1, rest, key_weight)
+        az = _blend(az, az1, rest, key_weight)
+        bz = _blend(bz, bz1, rest, key_weight)
+        cz = _blend(cz, cz1, rest, key_weight)
+    else:
+        ax, bx, cx, _ = _quad(tris_ptr, leaf, 12, 0, mask, LANES, VECTOR)
+        ay, by, cy, _ = _quad(tris_ptr, leaf, 12, 4, mask, LANES, VECTOR)
+        az, bz, cz, _ = _quad(tris_ptr, leaf, 12, 8, mask, LANES, VECTOR)
     # Vertices relative to the origin in the ray's (kx, ky, kz) frame.
     a_z = _select(kz, ax, ay, az) - okz
     b_z = _select(kz, bx, by, bz) - okz
@@ -144,6 +241,8 @@ def _triangle(
         inside = inside & (det >= 0)
     elif CULL == -1:
         inside = inside & (det < 0)
+    if LEAF_KEYS > 0:
+        inside = inside & ((moving == 0) | key_visible)
     t_scaled = e0 * (sz * a_z) + e1 * (sz * b_z) + e2 * (sz * c_z)
     det_safe = tl.where(det == 0, 1.0, det)
     distance = tl.math.div_rn(t_scaled, det_safe)
@@ -264,11 +363,12 @@ def _advance(stack_base, active, enter, node, depth, leaf, done, ANY_HIT: tl.con
 
 
 @triton.jit
-def _classify(inst_ptr, child, hit, n_primitives, ray_mask):
+def _classify(inst_ptr, imotion_ptr, child, hit, n_primitives, ray_mask, time, IWIDTH: tl.constexpr):
     """Sort a hit child of an instanced scene: ``(test, inner, entry)``.
 
     ``test``: a primitive leaf to test now; ``inner``: an inner node or an instance visible to the ray (mask
-    AND), to enter or push; ``entry``: the node, or ``-1 - g`` for instance ``g``.
+    AND; with instance motion, ``IWIDTH > 0``, also present at the ray's time), to enter or push; ``entry``:
+    the node, or ``-1 - g`` for instance ``g``.
     """
     is_leaf = child < 0
     k = -1 - child
@@ -276,7 +376,15 @@ def _classify(inst_ptr, child, hit, n_primitives, ray_mask):
     instance = is_leaf & (k >= n_primitives)
     g = k - n_primitives
     bits = tl.load(inst_ptr + g * 16 + 14, mask=hit & instance, other=0.0).to(tl.int32, bitcast=True)
-    inner = hit & ((child >= 0) | (instance & ((bits & ray_mask) != 0)))
+    if IWIDTH > 0:
+        read = hit & instance
+        start = tl.load(imotion_ptr + g * IWIDTH, mask=read, other=0.0)
+        end = tl.load(imotion_ptr + g * IWIDTH + 1, mask=read, other=0.0)
+        flags = tl.load(imotion_ptr + g * IWIDTH + 3, mask=read, other=0.0).to(tl.int32, bitcast=True)
+        visible = ((bits & ray_mask) != 0) & _instance_visible(time, start, end, flags)
+        inner = hit & ((child >= 0) | (instance & visible))
+    else:
+        inner = hit & ((child >= 0) | (instance & ((bits & ray_mask) != 0)))
     return hit & primitive, inner, tl.where(instance, -1 - g, child)
 
 
@@ -363,8 +471,55 @@ def _shear(dx, dy, dz):
 
 
 @triton.jit
+def _cross(u0, u1, u2, v0, v1, v2):
+    """``jnp.cross(u, v)`` component for component."""
+    return u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0
+
+
+@triton.jit
+def _moved_to_object(keys, mask, weight):
+    """World-to-object rows of an instance's keyframes ``keys`` (a pointer per lane) blended by ``weight``
+    (the portable ``instance_motion_at``: the component-wise blend, then ``invert_transform``, the adjugate
+    over the determinant, operation for operation)."""
+    rest = 1.0 - weight
+    a00 = _blend(tl.load(keys, mask=mask, other=0.0), tl.load(keys + 12, mask=mask, other=0.0), rest, weight)
+    a01 = _blend(tl.load(keys + 1, mask=mask, other=0.0), tl.load(keys + 13, mask=mask, other=0.0), rest, weight)
+    a02 = _blend(tl.load(keys + 2, mask=mask, other=0.0), tl.load(keys + 14, mask=mask, other=0.0), rest, weight)
+    t0 = _blend(tl.load(keys + 3, mask=mask, other=0.0), tl.load(keys + 15, mask=mask, other=0.0), rest, weight)
+    a10 = _blend(tl.load(keys + 4, mask=mask, other=0.0), tl.load(keys + 16, mask=mask, other=0.0), rest, weight)
+    a11 = _blend(tl.load(keys + 5, mask=mask, other=0.0), tl.load(keys + 17, mask=mask, other=0.0), rest, weight)
+    a12 = _blend(tl.load(keys + 6, mask=mask, other=0.0), tl.load(keys + 18, mask=mask, other=0.0), rest, weight)
+    t1 = _blend(tl.load(keys + 7, mask=mask, other=0.0), tl.load(keys + 19, mask=mask, other=0.0), rest, weight)
+    a20 = _blend(tl.load(keys + 8, mask=mask, other=0.0), tl.load(keys + 20, mask=mask, other=0.0), rest, weight)
+    a21 = _blend(tl.load(keys + 9, mask=mask, other=0.0), tl.load(keys + 21, mask=mask, other=0.0), rest, weight)
+    a22 = _blend(tl.load(keys + 10, mask=mask, other=0.0), tl.load(keys + 22, mask=mask, other=0.0), rest, weight)
+    t2 = _blend(tl.load(keys + 11, mask=mask, other=0.0), tl.load(keys + 23, mask=mask, other=0.0), rest, weight)
+    c00, c01, c02 = _cross(a10, a11, a12, a20, a21, a22)
+    c10, c11, c12 = _cross(a20, a21, a22, a00, a01, a02)
+    c20, c21, c22 = _cross(a00, a01, a02, a10, a11, a12)
+    det = (a00 * c00 + a01 * c01) + a02 * c02
+    det = tl.where(det == 0, 1.0, det)
+    # Row i of the inverse is (c0[i], c1[i], c2[i]) / det.
+    m00 = tl.math.div_rn(c00, det)
+    m01 = tl.math.div_rn(c10, det)
+    m02 = tl.math.div_rn(c20, det)
+    m10 = tl.math.div_rn(c01, det)
+    m11 = tl.math.div_rn(c11, det)
+    m12 = tl.math.div_rn(c21, det)
+    m20 = tl.math.div_rn(c02, det)
+    m21 = tl.math.div_rn(c12, det)
+    m22 = tl.math.div_rn(c22, det)
+    m03 = -((m00 * t0 + m01 * t1) + m02 * t2)
+    m13 = -((m10 * t0 + m11 * t1) + m12 * t2)
+    m23 = -((m20 * t0 + m21 * t1) + m22 * t2)
+    return m00, m01, m02, m03, m10, m11, m12, m13, m20, m21, m22, m23
+
+
+@triton.jit
 def _transition(
     inst_ptr,
+    imotion_ptr,
+    time,
     level_base,
     need,
     node,
@@ -376,10 +531,12 @@ def _transition(
     CLAMP: tl.constexpr,
     HUGE: tl.constexpr,
     CLAMPED: tl.constexpr,
+    IWIDTH: tl.constexpr,
 ):
     """Load the ray of the next entry's level and, where the entry is an instance, enter it (the portable
     ``step.transition``). ``ray`` is ``(ox, oy, oz, dx, dy, dz, facing, ix, iy, iz, kx, ky, kz, sx, sy, sz)``;
-    returns ``(node, level, ray_level, ray)``."""
+    returns ``(node, level, ray_level, ray)``. With instance motion (``IWIDTH > 0``) a moving instance moves
+    the ray by the inverse of its keyframe transforms blended at the ray's ``time``."""
     ox, oy, oz, dx, dy, dz, facing, ix, iy, iz, kx, ky, kz, sx, sy, sz = ray
     # The saved ray of level ``level`` (slot ``level``: origin, direction, facing, instance entered there).
     reload = need & (level != ray_level)
@@ -398,6 +555,29 @@ def _transition(
     m10, m11, m12, m13 = _quad(inst_ptr, g, 16, 4, entering, LANES, VECTOR)
     m20, m21, m22, m23 = _quad(inst_ptr, g, 16, 8, entering, LANES, VECTOR)
     root_bits, facing_bits, _, _ = _quad(inst_ptr, g, 16, 12, entering, LANES, VECTOR)
+    if IWIDTH > 0:
+        row = imotion_ptr + g * IWIDTH
+        start = tl.load(row, mask=entering, other=0.0)
+        end = tl.load(row + 1, mask=entering, other=0.0)
+        count = tl.load(row + 2, mask=entering, other=0.0).to(tl.int32, bitcast=True)
+        flags = tl.load(row + 3, mask=entering, other=0.0).to(tl.int32, bitcast=True)
+        moving = entering & ((flags & 1) != 0)
+        index, weight = _key_position(time, start, end, count)
+        k00, k01, k02, k03, k10, k11, k12, k13, k20, k21, k22, k23 = _moved_to_object(
+            row + 4 + index * 12, moving, weight
+        )
+        m00 = tl.where(moving, k00, m00)
+        m01 = tl.where(moving, k01, m01)
+        m02 = tl.where(moving, k02, m02)
+        m03 = tl.where(moving, k03, m03)
+        m10 = tl.where(moving, k10, m10)
+        m11 = tl.where(moving, k11, m11)
+        m12 = tl.where(moving, k12, m12)
+        m13 = tl.where(moving, k13, m13)
+        m20 = tl.where(moving, k20, m20)
+        m21 = tl.where(moving, k21, m21)
+        m22 = tl.where(moving, k22, m22)
+        m23 = tl.where(moving, k23, m23)
     nx = ((m00 * bx + m01 * by) + m02 * bz) + m03
     ny = ((m10 * bx + m11 * by) + m12 * bz) + m13
     nz = ((m20 * bx + m21 * by) + m22 * bz) + m23
@@ -458,6 +638,7 @@ def trace_kernel(
     n_rays,
     n_programs,
     n_primitives,
+    imotion_ptr,
     distance_ptr,
     leaf_ptr,
     visited_ptr,
@@ -480,6 +661,9 @@ def trace_kernel(
     CLAMP: tl.constexpr,
     HUGE: tl.constexpr,
     CLAMPED: tl.constexpr,
+    NODE_KEYS: tl.constexpr,
+    LEAF_KEYS: tl.constexpr,
+    IWIDTH: tl.constexpr,
 ):
     """Trace ``n_rays`` rays (a multiple of ``LANES``); outputs as :class:`~jaxrt._src.traversal.scene.TraversalResult`.
 
@@ -489,6 +673,11 @@ def trace_kernel(
     (the portable ``step.visit`` and ``step.transition``). Per lane, ``level_ptr`` keeps each level's ray and
     the instance entered there (``[program, level, field, lane]``), and ``chain_ptr`` (``(LEVELS, n_rays)``)
     receives the hit's instance chain. ``ROOTS``: each ray starts at its own root node (ray block row 16).
+
+    Keyframe motion (every constant 0 compiles no motion code): ``NODE_KEYS > 0``, ``nodes_ptr`` holds the
+    node rows of that many keyframes, blended at the ray's keyframe segment and weight (ray block rows 20-21);
+    ``LEAF_KEYS > 0``, ``tris_ptr`` holds the triangle rows of that many keyframes (see :func:`_triangle`);
+    ``IWIDTH > 0``, ``imotion_ptr`` holds instance motion rows of that width, read at the ray's time (row 23).
     """
     pid = tl.program_id(0)
     lane = tl.arange(0, LANES)
@@ -510,6 +699,20 @@ def trace_kernel(
         visited = tl.zeros((LANES,), tl.int32)
         tested = tl.zeros((LANES,), tl.int32)
         overflow = tl.zeros((LANES,), tl.int32)
+        if LEAF_KEYS > 0:
+            key_index = tl.load(rays_ptr + 20 * n_rays + ray).to(tl.int32, bitcast=True)
+            key_weight = tl.load(rays_ptr + 21 * n_rays + ray)
+            key_visible = tl.load(rays_ptr + 22 * n_rays + ray) != 0
+            key_rest = 1.0 - key_weight
+        else:
+            key_index = 0
+            key_weight = 0.0
+            key_visible = 1
+            key_rest = 1.0
+        if IWIDTH > 0:
+            time = tl.load(rays_ptr + 23 * n_rays + ray)
+        else:
+            time = 0.0
         if LEVELS > 0:
             ray_mask = tl.load(rays_ptr + 15 * n_rays + ray).to(tl.int32, bitcast=True)
             dx = tl.load(rays_ptr + 17 * n_rays + ray)
@@ -528,10 +731,18 @@ def trace_kernel(
         go = tl.max(1 - done, axis=0)
         while go > 0:
             active = done == 0
-            lo0x, hi0x, lo1x, hi1x = _quad(nodes_ptr, node, 16, 0, active, LANES, VECTOR)
-            lo0y, hi0y, lo1y, hi1y = _quad(nodes_ptr, node, 16, 4, active, LANES, VECTOR)
-            lo0z, hi0z, lo1z, hi1z = _quad(nodes_ptr, node, 16, 8, active, LANES, VECTOR)
-            c0f, c1f, _, _ = _quad(nodes_ptr, node, 16, 12, active, LANES, VECTOR)
+            if NODE_KEYS > 0:
+                # The node's child boxes blended at the ray's time (the portable ``_node_boxes_at``).
+                row = node * NODE_KEYS + key_index
+                lo0x, hi0x, lo1x, hi1x, lo0y, hi0y, lo1y, hi1y, lo0z, hi0z, lo1z, hi1z = _box_quads(
+                    nodes_ptr, row, active, key_rest, key_weight, LANES, VECTOR
+                )
+                c0f, c1f, _, _ = _quad(nodes_ptr, row, 16, 12, active, LANES, VECTOR)
+            else:
+                lo0x, hi0x, lo1x, hi1x = _quad(nodes_ptr, node, 16, 0, active, LANES, VECTOR)
+                lo0y, hi0y, lo1y, hi1y = _quad(nodes_ptr, node, 16, 4, active, LANES, VECTOR)
+                lo0z, hi0z, lo1z, hi1z = _quad(nodes_ptr, node, 16, 8, active, LANES, VECTOR)
+                c0f, c1f, _, _ = _quad(nodes_ptr, node, 16, 12, active, LANES, VECTOR)
             c0 = c0f.to(tl.int32, bitcast=True)
             c1 = c1f.to(tl.int32, bitcast=True)
             hit0, near0 = _slab(
@@ -543,8 +754,8 @@ def trace_kernel(
             hit0 = hit0 & active
             hit1 = hit1 & active
             if LEVELS > 0:
-                test0, inner0, entry0 = _classify(inst_ptr, c0, hit0, n_primitives, ray_mask)
-                test1, inner1, entry1 = _classify(inst_ptr, c1, hit1, n_primitives, ray_mask)
+                test0, inner0, entry0 = _classify(inst_ptr, imotion_ptr, c0, hit0, n_primitives, ray_mask, time, IWIDTH)
+                test1, inner1, entry1 = _classify(inst_ptr, imotion_ptr, c1, hit1, n_primitives, ray_mask, time, IWIDTH)
             else:
                 test0 = hit0 & (c0 < 0)
                 test1 = hit1 & (c1 < 0)
@@ -558,12 +769,12 @@ def trace_kernel(
             if BRANCH:
                 # Skip a leaf test that no lane of the warp needs (a warp-uniform branch).
                 if (votes & 1) != 0:
-                    h0, t0 = _triangle(tris_ptr, -1 - c0, test0, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, CULL, LANES, VECTOR, LEVELS)  # fmt: skip
+                    h0, t0 = _triangle(tris_ptr, -1 - c0, test0, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS)  # fmt: skip
                 if (votes & 2) != 0:
-                    h1, t1 = _triangle(tris_ptr, -1 - c1, test1, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, CULL, LANES, VECTOR, LEVELS)  # fmt: skip
+                    h1, t1 = _triangle(tris_ptr, -1 - c1, test1, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS)  # fmt: skip
             else:
-                h0, t0 = _triangle(tris_ptr, -1 - c0, test0, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, CULL, LANES, VECTOR, LEVELS)  # fmt: skip
-                h1, t1 = _triangle(tris_ptr, -1 - c1, test1, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, CULL, LANES, VECTOR, LEVELS)  # fmt: skip
+                h0, t0 = _triangle(tris_ptr, -1 - c0, test0, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS)  # fmt: skip
+                h1, t1 = _triangle(tris_ptr, -1 - c1, test1, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS)  # fmt: skip
             second = t1 < t0
             best_t = tl.where(second, t1, t0)
             best_leaf = tl.where(second, -1 - c1, -1 - c0)
@@ -596,9 +807,9 @@ def trace_kernel(
                 need = (done == 0) & ((node < 0) | (level != ray_level))
                 if tl.max(need.to(tl.int32), axis=0) > 0:
                     node, level, ray_level, moved = _transition(
-                        inst_ptr, level_base, need, node, level, ray_level,
+                        inst_ptr, imotion_ptr, time, level_base, need, node, level, ray_level,
                         (ox, oy, oz, dx, dy, dz, facing, ix, iy, iz, kx, ky, kz, sx, sy, sz),
-                        LANES, VECTOR, CLAMP, HUGE, CLAMPED,
+                        LANES, VECTOR, CLAMP, HUGE, CLAMPED, IWIDTH,
                     )  # fmt: skip
                     ox, oy, oz, dx, dy, dz, facing, ix, iy, iz, kx, ky, kz, sx, sy, sz = moved
                     okx = _select(kx, ox, oy, oz)
@@ -651,8 +862,9 @@ def _leaf_cluster(
     for j in range(longest):
         mask = test & (j < count)
         hit, t = _triangle(
-            tris_ptr, first + j, mask, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, 1, CULL, LANES, VECTOR, 0
-        )
+            tris_ptr, first + j, mask, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, 1, 0, 0.0, 1,
+            CULL, LANES, VECTOR, 0, 0,
+        )  # fmt: skip
         distance, leaf = _keep_nearer(hit, t, first + j, distance, leaf)
         tested = tested + mask.to(tl.int32)
     return distance, leaf, tested
