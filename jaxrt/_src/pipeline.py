@@ -84,16 +84,20 @@ class SanitizedRays:
         self.time = jnp.where(on, rays.time, 0.0)  # read only by scenes with keyframe motion
 
 
-def kernel_declines(intersector: Any, geometry_info: tuple, backend: str = "gpu", motion: bool = False) -> str | None:
+def kernel_declines(
+    intersector: Any, geometry_info: tuple, backend: str = "gpu", motion: bool = False, levels: int = 0
+) -> str | None:
     """Why the compiled traversal of ``backend`` (``"gpu"``: the GPU kernel, ``"cpu"``: the CPU traversal)
     does not cover a scene of these geometries with this intersector (``None``: it does); ``motion`` says
-    that the scene has keyframe motion (primitive motion is also read from the geometries).
+    that the scene has keyframe motion (primitive motion is also read from the geometries), ``levels`` how
+    many instance levels it has.
 
     The one place that decides their coverage (with :func:`jaxrt._src.traversal.gpu.unavailable_reason` and
     :func:`jaxrt._src.traversal.cpu.unavailable_reason` for the machine and the tags). Both cover the same
-    cases except keyframe motion, which only the GPU kernel traces. Declined scenes take the portable
-    traversal: curves, bounding boxes with intersection functions and filters call JAX code per candidate, and
-    the hit lists of ``max_hits`` and counting are not in the compiled loops.
+    cases except keyframe motion and hit lists, which only the GPU kernel traces: ``max_hits`` in primitive
+    structures, counting at any instance depth. Declined scenes take the portable traversal: curves,
+    bounding boxes with intersection functions and filters call JAX code per candidate, and the CPU loop keeps
+    no hit lists.
     """
     name = "CPU traversal" if backend == "cpu" else "GPU kernel"
     kinds = {g.kind for g in geometry_info}
@@ -103,8 +107,10 @@ def kernel_declines(intersector: Any, geometry_info: tuple, backend: str = "gpu"
         return f"bounding-box geometry (intersection functions) is not covered by the {name}"
     if intersector.filter is not None and any(g.kind == "triangle" and not g.opaque for g in geometry_info):
         return f"filters on non-opaque geometry are not covered by the {name}"
-    if intersector.max_hits is not None or intersector.counts_all:
+    if backend == "cpu" and (intersector.max_hits is not None or intersector.counts_all):
         return f"multi-hit (max_hits) and counting are not covered by the {name}"
+    if intersector.max_hits is not None and levels:
+        return f"multi-hit (max_hits) in instanced scenes is not covered by the {name}"
     if backend == "cpu" and (motion or any(g.motion for g in geometry_info)):
         return f"keyframe motion is not covered by the {name}"
     return None
@@ -170,7 +176,7 @@ def _trace_portable(intersector: Any, view: SceneView, rays: SanitizedRays) -> T
 def trace(intersector: Any, view: SceneView, rays: SanitizedRays) -> TraversalResult:
     """Run the traversal the intersector and scene call for (a compiled one where it covers them)."""
     backend = resolve_backend(intersector)
-    covered = kernel_declines(intersector, view.geometry_info, backend, view.layout.motion) is None
+    covered = kernel_declines(intersector, view.geometry_info, backend, view.layout.motion, view.layout.levels) is None
     if backend == "cpu":  # the CPU loop is compiled per float type: geometry and rays must share one
         covered = covered and view.traversal.node_lower.dtype == rays.origin.dtype
     if backend != "portable" and covered:
@@ -180,6 +186,9 @@ def trace(intersector: Any, view: SceneView, rays: SanitizedRays) -> TraversalRe
         moving = {}  # keyframe motion (GPU kernel only): each ray's time and the triangle keyframes
         if view.layout.motion:
             moving = dict(time=detached(rays.time), leaf_motion=gpu.leaf_motion(view))
+        if backend == "gpu" and (intersector.max_hits is not None or intersector.counts_all):
+            moving.update(max_hits=0 if intersector.counts_all else intersector.max_hits)
+            moving.update(count_all=intersector.counts_all)
         return (cpu if backend == "cpu" else gpu).trace_scene(
             jax.tree_util.tree_map(detached, view.traversal),
             view.layout,

@@ -339,6 +339,33 @@ def _keep_nearer(hit, t, index, distance, leaf):
 
 
 @triton.jit
+def _start_hits(hd_ptr, hl_ptr, n_rays, ray, MAX_HITS: tl.constexpr, LANES: tl.constexpr):
+    """An empty hit list for one ray per lane: every entry at distance ``inf``, leaf -1."""
+    for j in tl.static_range(MAX_HITS):
+        tl.store(hd_ptr + j * n_rays + ray, tl.full((LANES,), float("inf"), tl.float32))
+        tl.store(hl_ptr + j * n_rays + ray, tl.full((LANES,), -1, tl.int32))
+
+
+@triton.jit
+def _insert_hit(hd_ptr, hl_ptr, n_rays, ray, ok, t, index, MAX_HITS: tl.constexpr, LANES: tl.constexpr):
+    """Insert a hit at distance ``t`` into the sorted list where ``ok`` (the portable ``step._insert``): after
+    every entry at a distance ``<= t``, the entries behind it moved back by one, the last one dropped."""
+    position = tl.zeros((LANES,), tl.int32)
+    for j in tl.static_range(MAX_HITS):
+        listed = tl.load(hd_ptr + j * n_rays + ray, mask=ok, other=float("inf"))
+        position = position + (listed <= t).to(tl.int32)
+    for j in tl.static_range(MAX_HITS - 1, 0, -1):
+        move = ok & (position < j)
+        d = tl.load(hd_ptr + (j - 1) * n_rays + ray, mask=move, other=0.0)
+        k = tl.load(hl_ptr + (j - 1) * n_rays + ray, mask=move, other=0)
+        tl.store(hd_ptr + j * n_rays + ray, d, mask=move)
+        tl.store(hl_ptr + j * n_rays + ray, k, mask=move)
+    put = ok & (position < MAX_HITS)
+    tl.store(hd_ptr + position * n_rays + ray, t, mask=put)
+    tl.store(hl_ptr + position * n_rays + ray, index, mask=put)
+
+
+@triton.jit
 def _push(stack_base, depth, overflow, entry, STACK: tl.constexpr, LANES: tl.constexpr):
     """Push ``entry`` where it is a node (``>= 0``); a push past ``STACK`` entries is flagged and dropped."""
     want = entry >= 0
@@ -645,6 +672,9 @@ def trace_kernel(
     tested_ptr,
     overflow_ptr,
     chain_ptr,
+    hit_distance_ptr,
+    hit_leaf_ptr,
+    hit_total_ptr,
     stack_ptr,
     level_ptr,
     STACK: tl.constexpr,
@@ -664,6 +694,8 @@ def trace_kernel(
     NODE_KEYS: tl.constexpr,
     LEAF_KEYS: tl.constexpr,
     IWIDTH: tl.constexpr,
+    MAX_HITS: tl.constexpr = 0,
+    COUNT: tl.constexpr = False,
 ):
     """Trace ``n_rays`` rays (a multiple of ``LANES``); outputs as :class:`~jaxrt._src.traversal.scene.TraversalResult`.
 
@@ -678,6 +710,14 @@ def trace_kernel(
     node rows of that many keyframes, blended at the ray's keyframe segment and weight (ray block rows 20-21);
     ``LEAF_KEYS > 0``, ``tris_ptr`` holds the triangle rows of that many keyframes (see :func:`_triangle`);
     ``IWIDTH > 0``, ``imotion_ptr`` holds instance motion rows of that width, read at the ray's time (row 23).
+
+    Hit lists (``MAX_HITS = 0`` and ``COUNT = False`` compile none of this): ``MAX_HITS = K > 0`` keeps the
+    ``K`` nearest hits of each ray, sorted, in ``hit_distance_ptr`` and ``hit_leaf_ptr`` (``(K, n_rays)``) and
+    the number of hits accepted in ``hit_total_ptr``, as the portable ``step.HitList``: both leaves of a step
+    are tested against the distance bound before it, then inserted (leaf child 0 first, each after the hits
+    at the same distance), and once more than ``K`` hits are known the bound is the ``K``-th distance; the
+    result's leaf is the first hit and its distance the bound. Primitive structures only (``LEVELS = 0``).
+    ``COUNT`` counts every accepted hit in ``hit_total_ptr`` and never lowers the bound (the leaf stays -1).
     """
     pid = tl.program_id(0)
     lane = tl.arange(0, LANES)
@@ -699,6 +739,11 @@ def trace_kernel(
         visited = tl.zeros((LANES,), tl.int32)
         tested = tl.zeros((LANES,), tl.int32)
         overflow = tl.zeros((LANES,), tl.int32)
+        if MAX_HITS > 0:
+            tl.static_assert(LEVELS == 0, "hit lists are traced in primitive structures only")
+            _start_hits(hit_distance_ptr, hit_leaf_ptr, n_rays, ray, MAX_HITS, LANES)
+        if MAX_HITS > 0 or COUNT:
+            total = tl.zeros((LANES,), tl.int32)
         if LEAF_KEYS > 0:
             key_index = tl.load(rays_ptr + 20 * n_rays + ray).to(tl.int32, bitcast=True)
             key_weight = tl.load(rays_ptr + 21 * n_rays + ray)
@@ -781,8 +826,11 @@ def trace_kernel(
             near_first = near0 <= near1
             if LEVELS > 0:
                 found = (h0 | h1) & ((best_t < distance) | ((leaf < 0) & (best_t <= distance)))
-                distance = tl.where(found, best_t, distance)
-                leaf = tl.where(found, best_leaf, leaf)
+                if COUNT:
+                    total = total + h0.to(tl.int32) + h1.to(tl.int32)
+                else:
+                    distance = tl.where(found, best_t, distance)
+                    leaf = tl.where(found, best_leaf, leaf)
                 _record_chain(chain_ptr, level_base, n_rays, ray, found, level, LEVELS, LANES)
                 near = tl.where(near_first, entry0, entry1)
                 far = tl.where(near_first, entry1, entry0)
@@ -791,7 +839,25 @@ def trace_kernel(
                     leaf, done, STACK, ANY_HIT, LANES, SHIFT,
                 )  # fmt: skip
             else:
-                distance, leaf = _keep_nearer(h0 | h1, best_t, best_leaf, distance, leaf)
+                if MAX_HITS > 0:
+                    # Both leaves into the list (leaf child 0 first), then the bound: the K-th distance once
+                    # more than K hits are known.
+                    if BRANCH:
+                        if (votes & 1) != 0:
+                            _insert_hit(hit_distance_ptr, hit_leaf_ptr, n_rays, ray, h0, t0, -1 - c0, MAX_HITS, LANES)
+                        if (votes & 2) != 0:
+                            _insert_hit(hit_distance_ptr, hit_leaf_ptr, n_rays, ray, h1, t1, -1 - c1, MAX_HITS, LANES)
+                    else:
+                        _insert_hit(hit_distance_ptr, hit_leaf_ptr, n_rays, ray, h0, t0, -1 - c0, MAX_HITS, LANES)
+                        _insert_hit(hit_distance_ptr, hit_leaf_ptr, n_rays, ray, h1, t1, -1 - c1, MAX_HITS, LANES)
+                    total = total + h0.to(tl.int32) + h1.to(tl.int32)
+                    full = active & (total > MAX_HITS)
+                    kth = tl.load(hit_distance_ptr + (MAX_HITS - 1) * n_rays + ray, mask=full, other=0.0)
+                    distance = tl.where(full, kth, distance)
+                elif COUNT:
+                    total = total + h0.to(tl.int32) + h1.to(tl.int32)
+                else:
+                    distance, leaf = _keep_nearer(h0 | h1, best_t, best_leaf, distance, leaf)
                 inner0 = hit0 & (c0 >= 0)
                 inner1 = hit1 & (c1 >= 0)
                 near = tl.where(near_first, c0, c1)
@@ -816,6 +882,10 @@ def trace_kernel(
                     oky = _select(ky, ox, oy, oz)
                     okz = _select(kz, ox, oy, oz)
 
+        if MAX_HITS > 0:
+            leaf = tl.load(hit_leaf_ptr + ray)
+        if MAX_HITS > 0 or COUNT:
+            tl.store(hit_total_ptr + ray, total)
         _store_result(distance_ptr, leaf_ptr, visited_ptr, tested_ptr, overflow_ptr, ray, distance, leaf, visited, tested, overflow)  # fmt: skip
         block += n_programs
 
