@@ -9,7 +9,8 @@ The intersector picks this path (``backend="auto"`` or ``"gpu"``) when :func:`un
 ``None``: the default JAX backend is a GPU, Triton and jax-triton import (``pip install jaxrt[gpu]``), geometry
 is float32, and the intersector asks only for what the kernel covers (triangles, nearest and any hit, cull
 modes and windings, ray intervals, masks and disabled rays, several geometries per structure, instances over
-any number of levels, keyframe motion of triangles and instances at each ray's time, and the tags of
+any number of levels, keyframe motion of triangles and instances at each ray's time, the ``K`` nearest hits
+of ``max_hits`` in primitive structures, counting every hit at any depth, and the tags of
 :data:`COVERED_TAGS`). Triton is imported only here and only when a trace is compiled, so CPU-only installs
 never import it.
 

@@ -48,6 +48,17 @@ the ray's time: the segment and weight computed as ``motion.keyframe_position`` 
 rounded division), the blend, and the adjugate over the determinant of ``instances.invert_transform``,
 operation for operation. Without contraction these are the portable path's floats wherever XLA evaluates the
 same operations in the same order.
+
+Hit lists (compile-time constants ``MAX_HITS`` and ``COUNT``; 0 and ``False`` generate none of this code): the
+portable ``step.HitList``. ``MAX_HITS = K`` keeps each ray's ``K`` nearest hits sorted in the output buffers
+themselves, laid out ``(K, n_rays)`` so that a warp's accesses to one entry fall in one 128-byte line, like the
+stack; an insertion reads the ``K`` distances to find its place (after equal ones) and moves the entries behind
+it back by one, only in lanes that hit, behind the same warp-uniform branch as the leaf test. Registers would
+need ``K`` separately named values per field and unrolled selects for every shift (Triton has no per-lane
+arrays), and the list must reach memory anyway; an insertion is rare next to a step, so the lines stay in L1.
+Both leaves of a step are tested against the bound before it and inserted leaf child 0 first; once more than
+``K`` hits are known the bound is the ``K``-th distance, which culls boxes and leaves as in the portable path.
+``COUNT`` counts every accepted hit and never lowers the bound.
 """
 
 from __future__ import annotations
