@@ -115,6 +115,10 @@ def assert_same(got, want) -> None:
     np.testing.assert_array_equal(np.asarray(got.hits.leaf), np.asarray(want.hits.leaf), err_msg="hit leaves")
     np.testing.assert_array_equal(np.asarray(got.hits.total), np.asarray(want.hits.total), err_msg="hit totals")
     np.testing.assert_allclose(np.asarray(got.hits.distance), np.asarray(want.hits.distance), rtol=1e-6, atol=1e-7)
+    if want.hits.instances is None:
+        assert got.hits.instances is None
+    else:
+        np.testing.assert_array_equal(np.asarray(got.hits.instances), np.asarray(want.hits.instances), "chains")
     assert not np.asarray(got.stack_overflow).any()
 
 
@@ -209,33 +213,44 @@ def test_counts_equal_the_portable_count_and_float64(kernel_here):
     assert np.all(count[~np.asarray(enabled)] == 0)
 
 
+INSTANCED = rt.Intersector(rt.tags.instancing, rt.tags.max_levels(2), triangle_cull_mode="back")
+
+
 @kernel_test
-def test_counts_below_instances(kernel_here):
-    """Counting at two instance levels (masks, mirrors, per-instance culling options): the portable count."""
+@pytest.mark.parametrize("k", [0, 2])
+def test_below_instances(k, kernel_here):
+    """Two instance levels (masks, mirrors, per-instance culling options, chains of both lengths): counting
+    (``k = 0``) and the K nearest hits with each hit's instance chain, as the portable path finds them."""
     structure = scene_of_levels(2, seed=4)
     ray_args = instanced_rays(64, seed=5)
-    view = scene_view(structure)
-    intersector = rt.Intersector(rt.tags.instancing, rt.tags.max_levels(2), triangle_cull_mode="back")
-    got = gpu.trace_scene(
-        view.traversal, view.layout, *ray_args, any_hit=False, cull=intersector.cull, max_hits=0, count_all=True
-    )
-    tester = leaf_tests.leaf_tester(intersector, view)
-    fn = functools.partial(
-        drivers.traverse, view.traversal, view.layout, tester, any_hit=False, max_hits=0, count_all=True
-    )
-    want = jax.jit(jax.vmap(fn))(*ray_args)
-    assert_same(got, want)
-    assert (np.asarray(got.hits.total) > 1).sum() > 5
+    count_all = k == 0
+    got = kernel(structure, ray_args, INSTANCED, max_hits=k, count_all=count_all)
+    assert_same(got, portable(structure, ray_args, INSTANCED, max_hits=k, count_all=count_all))
+    total = np.asarray(got.hits.total)
+    assert (total > 1).sum() > 5
+    if k:
+        chains = np.asarray(got.hits.instances)
+        lengths = (chains >= 0).sum(axis=-1)[np.asarray(got.hits.leaf) >= 0]
+        assert set(lengths.tolist()) == {1, 2}, lengths
+        assert (total > k).sum() > 3
 
 
 @kernel_test
-def test_vmap_over_scenes_maps_hit_leaves(kernel_here):
-    """``jax.vmap`` over (rays, scene) pairs: one launch, each scene's hit leaves in its own numbering."""
-    structures = [structure_of(layer_triangles(30 + s)) for s in range(2)]
+@pytest.mark.parametrize("levels", [0, 2])
+def test_vmap_over_scenes_maps_hit_leaves(levels, kernel_here):
+    """``jax.vmap`` over (rays, scene) pairs: one launch, each scene's hit leaves and chains in its own
+    numbering."""
+    if levels:
+        structures = [scene_of_levels(levels, seed=30 + s) for s in range(2)]
+        per_scene = [instanced_rays(40, seed=40 + s, spread=3.0) for s in range(2)]
+        intersector = rt.Intersector(rt.tags.instancing, rt.tags.max_levels(2), max_hits=3)
+    else:
+        structures = [structure_of(layer_triangles(30 + s)) for s in range(2)]
+        per_scene = [layer_rays(40, seed=40 + s) for s in range(2)]
+        intersector = rt.Intersector(max_hits=3)
     views = [scene_view(s) for s in structures]
     layout = views[0].layout
     assert views[1].layout == layout
-    per_scene = [layer_rays(40, seed=40 + s) for s in range(2)]
     stack = lambda *xs: jax.tree.map(lambda *a: jnp.stack(a), *xs)  # noqa: E731
     fn = lambda scene, *r: gpu.trace_scene(scene, layout, *r, any_hit=False, cull=0, max_hits=3)  # noqa: E731
     got = jax.jit(jax.vmap(fn))(stack(*[v.traversal for v in views]), *stack(*per_scene))
@@ -243,7 +258,8 @@ def test_vmap_over_scenes_maps_hit_leaves(kernel_here):
         assert [n for _, n in LAUNCHES] == [96], LAUNCHES  # 2 x 40 rays in one launch (padded to 3 x 32)
     for s, structure in enumerate(structures):
         one = jax.tree.map(lambda a, s=s: a[s], got)
-        assert_same(one, portable(structure, per_scene[s], rt.Intersector(max_hits=3), max_hits=3))
+        assert_same(one, portable(structure, per_scene[s], intersector, max_hits=3))
+        assert (np.asarray(one.hits.total) > 1).sum() > 3
 
 
 @kernel_test
@@ -284,16 +300,15 @@ def test_intersector_takes_the_kernel(k, kernel_here, monkeypatch):
 
 
 def test_coverage_of_hit_lists():
-    """The GPU kernel takes ``max_hits`` in primitive structures and counting everywhere; filters on
-    non-opaque geometry, instanced ``max_hits`` and the CPU traversal still decline."""
+    """The GPU kernel takes ``max_hits`` and counting; filters on non-opaque geometry and the CPU traversal
+    still decline."""
     opaque = structure_of(layer_triangles(60)).geometry_info
     clear = rt.build_primitive_structure(
         rt.TriangleGeometry(layer_triangles(60).reshape(-1, 3), opaque=False)
     ).geometry_info
     k4, counting = rt.Intersector(max_hits=4), _CountingIntersector()  # what count_intersections builds
     assert pipeline.kernel_declines(k4, opaque, "gpu") is None
-    assert pipeline.kernel_declines(counting, opaque, "gpu", levels=2) is None
-    assert "instanced" in pipeline.kernel_declines(k4, opaque, "gpu", levels=1)
+    assert pipeline.kernel_declines(counting, opaque, "gpu", True) is None
     alpha = rt.Intersector(max_hits=4, filter=lambda c: jnp.asarray(True))
     assert "filters on non-opaque" in pipeline.kernel_declines(alpha, clear, "gpu")
     assert pipeline.kernel_declines(k4, opaque, "cpu").startswith("multi-hit")
@@ -309,7 +324,7 @@ def test_static_kernels_compile_no_hit_list_code():
     call = gpu.kernel_call(*args, config)
     assert (call.params["MAX_HITS"], call.params["COUNT"], gpu.returned(call)) == (0, False, 6)
     call = gpu.kernel_call(*args, dataclasses.replace(config, max_hits=4))
-    assert (call.params["MAX_HITS"], gpu.returned(call)) == (4, 9)
+    assert (call.params["MAX_HITS"], gpu.returned(call)) == (4, 10)
     assert call.out_shape[6].shape == call.out_shape[7].shape == (4 * 32,)
 
 

@@ -377,8 +377,7 @@ def _check_geometry(intersector: Intersector, structure: Any) -> None:
     if intersector.backend in ("gpu", "cpu"):
         infos = tuple(g for s in prims for g in s.geometry_info)
         motion = bool(getattr(structure, "has_instance_motion", False))
-        levels = 0 if isinstance(structure, PrimitiveAccelerationStructure) else 1  # only "any" matters here
-        reason = pipeline.kernel_declines(intersector, infos, intersector.backend, motion, levels)
+        reason = pipeline.kernel_declines(intersector, infos, intersector.backend, motion)
         if reason:
             raise ValueError(f"Intersector: backend={intersector.backend!r} cannot run: {reason}")
     _check_user_functions(intersector, prims)

@@ -84,20 +84,16 @@ class SanitizedRays:
         self.time = jnp.where(on, rays.time, 0.0)  # read only by scenes with keyframe motion
 
 
-def kernel_declines(
-    intersector: Any, geometry_info: tuple, backend: str = "gpu", motion: bool = False, levels: int = 0
-) -> str | None:
+def kernel_declines(intersector: Any, geometry_info: tuple, backend: str = "gpu", motion: bool = False) -> str | None:
     """Why the compiled traversal of ``backend`` (``"gpu"``: the GPU kernel, ``"cpu"``: the CPU traversal)
     does not cover a scene of these geometries with this intersector (``None``: it does); ``motion`` says
-    that the scene has keyframe motion (primitive motion is also read from the geometries), ``levels`` how
-    many instance levels it has.
+    that the scene has keyframe motion (primitive motion is also read from the geometries).
 
     The one place that decides their coverage (with :func:`jaxrt._src.traversal.gpu.unavailable_reason` and
     :func:`jaxrt._src.traversal.cpu.unavailable_reason` for the machine and the tags). Both cover the same
-    cases except keyframe motion and hit lists, which only the GPU kernel traces: ``max_hits`` in primitive
-    structures, counting at any instance depth. Declined scenes take the portable traversal: curves,
-    bounding boxes with intersection functions and filters call JAX code per candidate, and the CPU loop keeps
-    no hit lists.
+    cases except keyframe motion and hit lists (``max_hits`` and counting), which only the GPU kernel traces.
+    Declined scenes take the portable traversal: curves, bounding boxes with intersection functions and filters
+    call JAX code per candidate, and the CPU loop keeps no hit lists.
     """
     name = "CPU traversal" if backend == "cpu" else "GPU kernel"
     kinds = {g.kind for g in geometry_info}
@@ -109,8 +105,6 @@ def kernel_declines(
         return f"filters on non-opaque geometry are not covered by the {name}"
     if backend == "cpu" and (intersector.max_hits is not None or intersector.counts_all):
         return f"multi-hit (max_hits) and counting are not covered by the {name}"
-    if intersector.max_hits is not None and levels:
-        return f"multi-hit (max_hits) in instanced scenes is not covered by the {name}"
     if backend == "cpu" and (motion or any(g.motion for g in geometry_info)):
         return f"keyframe motion is not covered by the {name}"
     return None
@@ -176,7 +170,7 @@ def _trace_portable(intersector: Any, view: SceneView, rays: SanitizedRays) -> T
 def trace(intersector: Any, view: SceneView, rays: SanitizedRays) -> TraversalResult:
     """Run the traversal the intersector and scene call for (a compiled one where it covers them)."""
     backend = resolve_backend(intersector)
-    covered = kernel_declines(intersector, view.geometry_info, backend, view.layout.motion, view.layout.levels) is None
+    covered = kernel_declines(intersector, view.geometry_info, backend, view.layout.motion) is None
     if backend == "cpu":  # the CPU loop is compiled per float type: geometry and rays must share one
         covered = covered and view.traversal.node_lower.dtype == rays.origin.dtype
     if backend != "portable" and covered:

@@ -155,8 +155,7 @@ def traversal_path(intersector: rt.Intersector, structure: Any) -> str:
     """Which traversal ``intersector`` runs on ``structure`` on this machine: ``"gpu kernel"``,
     ``"cpu traversal"`` or ``"portable"`` (the choice :func:`jaxrt._src.pipeline.trace` makes)."""
     backend = pipeline.resolve_backend(intersector)
-    levels = 0 if isinstance(structure, rt.PrimitiveAccelerationStructure) else 1
-    if backend == "portable" or pipeline.kernel_declines(intersector, structure.geometry_info, backend, levels=levels):
+    if backend == "portable" or pipeline.kernel_declines(intersector, structure.geometry_info, backend):
         return "portable"
     return "gpu kernel" if backend == "gpu" else "cpu traversal"
 

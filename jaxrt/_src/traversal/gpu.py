@@ -10,7 +10,7 @@ The intersector picks this path (``backend="auto"`` or ``"gpu"``) when :func:`un
 is float32, and the intersector asks only for what the kernel covers (triangles, nearest and any hit, cull
 modes and windings, ray intervals, masks and disabled rays, several geometries per structure, instances over
 any number of levels, keyframe motion of triangles and instances at each ray's time, the ``K`` nearest hits
-of ``max_hits`` in primitive structures, counting every hit at any depth, and the tags of
+of ``max_hits`` with each hit's instance chain, counting every hit, and the tags of
 :data:`COVERED_TAGS`). Triton is imported only here and only when a trace is compiled, so CPU-only installs
 never import it.
 
@@ -257,13 +257,14 @@ def kernel_call(
         jax.ShapeDtypeStruct((max(1, k * size),), jnp.float32),  # hit list distances, (K, size)
         jax.ShapeDtypeStruct((max(1, k * size),), jnp.int32),  # hit list leaves, (K, size)
         jax.ShapeDtypeStruct((size if config.hit_list else 1,), jnp.int32),  # hits accepted
+        jax.ShapeDtypeStruct((max(1, k * levels * size),), jnp.int32),  # hit list chains, (K, levels, size)
         jax.ShapeDtypeStruct((programs * config.stack * lanes,), jnp.int32),  # stack scratch
         jax.ShapeDtypeStruct((max(1, programs * (levels + 1) * 8 * lanes),), jnp.float32),  # per-level rays
     )
     if instance_motion is None:
         instance_motion = jnp.zeros((1,), jnp.float32)
     args = (nodes, triangles, instances, rays, size, programs, config.primitive_leaves, instance_motion)
-    return KernelCall("trace_kernel", programs, args, results + extra, params, 9 if config.hit_list else 6)
+    return KernelCall("trace_kernel", programs, args, results + extra, params, 10 if config.hit_list else 6)
 
 
 def _launch(call: KernelCall) -> tuple[jax.Array, ...]:
@@ -301,7 +302,7 @@ def _kernel(*args, config: _Config) -> tuple[jax.Array, ...]:
     """Pack the scene and the rays, launch the kernel, and drop the padding rays.
 
     Returns ``(distance, leaf, instances (n, levels), visited, tested, overflow)``, and with a hit list
-    ``(hit distances (n, K), hit leaves (n, K), hits accepted (n,))`` after them.
+    ``(hit distances (n, K), hit leaves (n, K), hits accepted (n,), hit chains (n, K, levels))`` after them.
     """
     (node_lower, node_upper, node_children, node_range, leaf_triangle, world_to_object, child_root, facing,
      instance_mask, node_keys_lower, node_keys_upper, leaf_keys, leaf_moving, instance_motion, origin, direction,
@@ -347,9 +348,10 @@ def _kernel(*args, config: _Config) -> tuple[jax.Array, ...]:
         chain = jnp.zeros((n, config.levels), jnp.int32)
     if not config.hit_list:
         return distance, leaf, chain, visited, tested, overflow
-    k = config.max_hits
+    k, levels = config.max_hits, config.levels
     hit_list = (out[6][: k * size].reshape(k, size)[:, :n].T, out[7][: k * size].reshape(k, size)[:, :n].T)
-    return distance, leaf, chain, visited, tested, overflow, *hit_list, out[8][:n]
+    chains = out[9][: k * levels * size].reshape(k, levels, size)[:, :, :n].transpose(2, 0, 1)
+    return distance, leaf, chain, visited, tested, overflow, *hit_list, out[8][:n], chains
 
 
 def _concatenate_scenes(scene: list[jax.Array], root: jax.Array) -> tuple[list[jax.Array], jax.Array, int, int]:
@@ -395,9 +397,10 @@ def _batched_scenes(config: _Config, call_for, axis_size: int, in_batched, args)
     per_scene = lambda a: a.reshape(axis_size, n, *a.shape[1:])  # noqa: E731
     out = per_scene(distance), leaf, chain, per_scene(visited), per_scene(tested), per_scene(overflow)
     if hit_list:
-        hit_distance, hit_leaf, total = (per_scene(a) for a in hit_list)
+        hit_distance, hit_leaf, total, chains = (per_scene(a) for a in hit_list)
         hit_leaf = jnp.where(hit_leaf >= 0, hit_leaf - index[..., None] * p, hit_leaf)
-        out += (hit_distance, hit_leaf, total)
+        chains = jnp.where(chains >= 0, chains - index[..., None, None] * g, chains)
+        out += (hit_distance, hit_leaf, total, chains)
     return out
 
 
@@ -411,7 +414,7 @@ def _traversal(config: _Config):
 
     @call.def_vmap
     def rule(axis_size, in_batched, *args):
-        outputs = 9 if config.hit_list else 6
+        outputs = 10 if config.hit_list else 6
         if any(in_batched[:SCENE_ARGS]):
             return _batched_scenes(config, _traversal, axis_size, in_batched, args), (True,) * outputs
         scene, ray_args = args[:SCENE_ARGS], args[SCENE_ARGS:]
@@ -512,8 +515,8 @@ def trace_scene(
         keyframes (``scene.node_motion``) and instance keyframes (``scene.instance_motion``) come with the
         scene.
       max_hits: static ``K``: also keep the ``K`` nearest hits of each ray in ``hits`` (a
-        :class:`~jaxrt._src.traversal.step.HitList`, as the portable traversal's ``max_hits``; primitive
-        structures only, not with ``any_hit``). ``0`` with ``count_all``.
+        :class:`~jaxrt._src.traversal.step.HitList`, as the portable traversal's ``max_hits``, with each hit's
+        instance chain below instances; not with ``any_hit``). ``0`` with ``count_all``.
       count_all: static; count every accepted hit in ``hits.total`` (no culling), at any instance depth.
 
     Returns:
@@ -527,11 +530,10 @@ def trace_scene(
     levels = int(layout.levels)
     k = int(max_hits or 0)
     hit_list = max_hits is not None or count_all
-    if hit_list and (any_hit or (count_all and k) or (not count_all and k < 1) or (k and levels)):
+    if hit_list and (any_hit or (count_all and k) or (not count_all and k < 1)):
         raise ValueError(
-            "traversal.gpu.trace_scene: hit lists need max_hits >= 1 (0 with count_all), no any_hit, "
-            f"and a primitive structure for max_hits > 0 (got max_hits={max_hits}, count_all={count_all}, "
-            f"any_hit={any_hit}, {levels} instance levels)"
+            "traversal.gpu.trace_scene: hit lists need max_hits >= 1 (0 with count_all) and no any_hit "
+            f"(got max_hits={max_hits}, count_all={count_all}, any_hit={any_hit})"
         )
     if hit_list:  # the 4-wide layout keeps no hit lists
         options = dataclasses.replace(options, node_width=2)
@@ -579,7 +581,8 @@ def trace_scene(
     distance, leaf, instances, visited, tested, overflow, *found = _traversal(config)(*args)
     hits = None
     if hit_list:
-        hits = HitList(*found)
+        distances, leaves, total, chains = found
+        hits = HitList(distances, leaves, total, chains if levels else None)
     return TraversalResult(distance, leaf, instances, visited, tested, overflow.astype(bool), hits)
 
 

@@ -350,17 +350,34 @@ def _keep_nearer(hit, t, index, distance, leaf):
 
 
 @triton.jit
-def _start_hits(hd_ptr, hl_ptr, n_rays, ray, MAX_HITS: tl.constexpr, LANES: tl.constexpr):
-    """An empty hit list for one ray per lane: every entry at distance ``inf``, leaf -1."""
+def _start_hits(hd_ptr, hl_ptr, hc_ptr, n_rays, ray, MAX_HITS: tl.constexpr, LEVELS: tl.constexpr, LANES: tl.constexpr):
+    """An empty hit list for one ray per lane: every entry at distance ``inf``, leaf -1, chain -1."""
     for j in tl.static_range(MAX_HITS):
         tl.store(hd_ptr + j * n_rays + ray, tl.full((LANES,), float("inf"), tl.float32))
         tl.store(hl_ptr + j * n_rays + ray, tl.full((LANES,), -1, tl.int32))
+        for index in tl.static_range(LEVELS):
+            tl.store(hc_ptr + (j * LEVELS + index) * n_rays + ray, tl.full((LANES,), -1, tl.int32))
 
 
 @triton.jit
-def _insert_hit(hd_ptr, hl_ptr, n_rays, ray, ok, t, index, MAX_HITS: tl.constexpr, LANES: tl.constexpr):
+def _insert_hit(
+    hd_ptr,
+    hl_ptr,
+    hc_ptr,
+    n_rays,
+    ray,
+    ok,
+    t,
+    leaf,
+    level_base,
+    level,
+    MAX_HITS: tl.constexpr,
+    LEVELS: tl.constexpr,
+    LANES: tl.constexpr,
+):
     """Insert a hit at distance ``t`` into the sorted list where ``ok`` (the portable ``step._insert``): after
-    every entry at a distance ``<= t``, the entries behind it moved back by one, the last one dropped."""
+    every entry at a distance ``<= t``, the entries behind it moved back by one, the last one dropped. Below
+    instances (``LEVELS > 0``) the entry's chain is the current path (``level`` instances entered)."""
     position = tl.zeros((LANES,), tl.int32)
     for j in tl.static_range(MAX_HITS):
         listed = tl.load(hd_ptr + j * n_rays + ray, mask=ok, other=float("inf"))
@@ -371,9 +388,37 @@ def _insert_hit(hd_ptr, hl_ptr, n_rays, ray, ok, t, index, MAX_HITS: tl.constexp
         k = tl.load(hl_ptr + (j - 1) * n_rays + ray, mask=move, other=0)
         tl.store(hd_ptr + j * n_rays + ray, d, mask=move)
         tl.store(hl_ptr + j * n_rays + ray, k, mask=move)
+        for index in tl.static_range(LEVELS):
+            g = tl.load(hc_ptr + ((j - 1) * LEVELS + index) * n_rays + ray, mask=move, other=0)
+            tl.store(hc_ptr + (j * LEVELS + index) * n_rays + ray, g, mask=move)
     put = ok & (position < MAX_HITS)
     tl.store(hd_ptr + position * n_rays + ray, t, mask=put)
-    tl.store(hl_ptr + position * n_rays + ray, index, mask=put)
+    tl.store(hl_ptr + position * n_rays + ray, leaf, mask=put)
+    for index in tl.static_range(LEVELS):
+        on_path = put & (level > index)
+        g = tl.load(level_base + (index * 8 + 7) * LANES, mask=on_path, other=0.0).to(tl.int32, bitcast=True)
+        tl.store(hc_ptr + (position * LEVELS + index) * n_rays + ray, tl.where(on_path, g, -1), mask=put)
+
+
+@triton.jit
+def _hit_lists(
+    hd_ptr, hl_ptr, hc_ptr, n_rays, ray, votes, active, h0, t0, c0, h1, t1, c1, distance, total, level_base, level,
+    MAX_HITS: tl.constexpr, LEVELS: tl.constexpr, LANES: tl.constexpr, BRANCH: tl.constexpr,
+):  # fmt: skip
+    """One step of the ``K`` nearest hits: both leaves into the list (leaf child 0 first), then the bound, the
+    ``K``-th distance once more than ``K`` hits are known. Returns ``(distance, total)``."""
+    if BRANCH:
+        if (votes & 1) != 0:
+            _insert_hit(hd_ptr, hl_ptr, hc_ptr, n_rays, ray, h0, t0, -1 - c0, level_base, level, MAX_HITS, LEVELS, LANES)  # fmt: skip
+        if (votes & 2) != 0:
+            _insert_hit(hd_ptr, hl_ptr, hc_ptr, n_rays, ray, h1, t1, -1 - c1, level_base, level, MAX_HITS, LEVELS, LANES)  # fmt: skip
+    else:
+        _insert_hit(hd_ptr, hl_ptr, hc_ptr, n_rays, ray, h0, t0, -1 - c0, level_base, level, MAX_HITS, LEVELS, LANES)
+        _insert_hit(hd_ptr, hl_ptr, hc_ptr, n_rays, ray, h1, t1, -1 - c1, level_base, level, MAX_HITS, LEVELS, LANES)
+    total = total + h0.to(tl.int32) + h1.to(tl.int32)
+    full = active & (total > MAX_HITS)
+    kth = tl.load(hd_ptr + (MAX_HITS - 1) * n_rays + ray, mask=full, other=0.0)
+    return tl.where(full, kth, distance), total
 
 
 @triton.jit
@@ -686,6 +731,7 @@ def trace_kernel(
     hit_distance_ptr,
     hit_leaf_ptr,
     hit_total_ptr,
+    hit_chain_ptr,
     stack_ptr,
     level_ptr,
     STACK: tl.constexpr,
@@ -727,8 +773,8 @@ def trace_kernel(
     the number of hits accepted in ``hit_total_ptr``, as the portable ``step.HitList``: both leaves of a step
     are tested against the distance bound before it, then inserted (leaf child 0 first, each after the hits
     at the same distance), and once more than ``K`` hits are known the bound is the ``K``-th distance; the
-    result's leaf is the first hit and its distance the bound. Primitive structures only (``LEVELS = 0``).
-    ``COUNT`` counts every accepted hit in ``hit_total_ptr`` and never lowers the bound (the leaf stays -1).
+    result's leaf is the first hit and its distance the bound. Below instances ``hit_chain_ptr``
+    (``(K, LEVELS, n_rays)``) receives each hit's instance chain. ``COUNT`` counts every accepted hit in ``hit_total_ptr`` and never lowers the bound (the leaf stays -1).
     """
     pid = tl.program_id(0)
     lane = tl.arange(0, LANES)
@@ -751,8 +797,7 @@ def trace_kernel(
         tested = tl.zeros((LANES,), tl.int32)
         overflow = tl.zeros((LANES,), tl.int32)
         if MAX_HITS > 0:
-            tl.static_assert(LEVELS == 0, "hit lists are traced in primitive structures only")
-            _start_hits(hit_distance_ptr, hit_leaf_ptr, n_rays, ray, MAX_HITS, LANES)
+            _start_hits(hit_distance_ptr, hit_leaf_ptr, hit_chain_ptr, n_rays, ray, MAX_HITS, LEVELS, LANES)
         if MAX_HITS > 0 or COUNT:
             total = tl.zeros((LANES,), tl.int32)
         if LEAF_KEYS > 0:
@@ -837,7 +882,14 @@ def trace_kernel(
             near_first = near0 <= near1
             if LEVELS > 0:
                 found = (h0 | h1) & ((best_t < distance) | ((leaf < 0) & (best_t <= distance)))
-                if COUNT:
+                if MAX_HITS > 0:
+                    distance, total = _hit_lists(
+                        hit_distance_ptr, hit_leaf_ptr, hit_chain_ptr, n_rays, ray, votes, active, h0, t0, c0, h1,
+                        t1, c1, distance, total, level_base, level, MAX_HITS, LEVELS, LANES, BRANCH,
+                    )  # fmt: skip
+                    # The first hit (the portable state's leaf, read by the next step's ``found``).
+                    leaf = tl.where(active, tl.load(hit_leaf_ptr + ray, mask=active, other=-1), leaf)
+                elif COUNT:
                     total = total + h0.to(tl.int32) + h1.to(tl.int32)
                 else:
                     distance = tl.where(found, best_t, distance)
@@ -851,20 +903,10 @@ def trace_kernel(
                 )  # fmt: skip
             else:
                 if MAX_HITS > 0:
-                    # Both leaves into the list (leaf child 0 first), then the bound: the K-th distance once
-                    # more than K hits are known.
-                    if BRANCH:
-                        if (votes & 1) != 0:
-                            _insert_hit(hit_distance_ptr, hit_leaf_ptr, n_rays, ray, h0, t0, -1 - c0, MAX_HITS, LANES)
-                        if (votes & 2) != 0:
-                            _insert_hit(hit_distance_ptr, hit_leaf_ptr, n_rays, ray, h1, t1, -1 - c1, MAX_HITS, LANES)
-                    else:
-                        _insert_hit(hit_distance_ptr, hit_leaf_ptr, n_rays, ray, h0, t0, -1 - c0, MAX_HITS, LANES)
-                        _insert_hit(hit_distance_ptr, hit_leaf_ptr, n_rays, ray, h1, t1, -1 - c1, MAX_HITS, LANES)
-                    total = total + h0.to(tl.int32) + h1.to(tl.int32)
-                    full = active & (total > MAX_HITS)
-                    kth = tl.load(hit_distance_ptr + (MAX_HITS - 1) * n_rays + ray, mask=full, other=0.0)
-                    distance = tl.where(full, kth, distance)
+                    distance, total = _hit_lists(
+                        hit_distance_ptr, hit_leaf_ptr, hit_chain_ptr, n_rays, ray, votes, active, h0, t0, c0, h1,
+                        t1, c1, distance, total, stack_base, 0, MAX_HITS, LEVELS, LANES, BRANCH,
+                    )  # fmt: skip
                 elif COUNT:
                     total = total + h0.to(tl.int32) + h1.to(tl.int32)
                 else:
