@@ -44,10 +44,10 @@ _SCENE_RANKS = (3, 3, 2, 3, 3, 1, 1, 1)
 _RAY_RANKS = (2, 2, 1, 1, 1, 1)
 #: Positions of the float arguments (scene geometry and rays).
 _FLOAT_ARGS = (0, 1, 3, 4, 8, 9, 10, 11)
-#: Tasks per thread (rays cost unevenly: small tasks keep every thread busy to the end).
-TASKS_PER_THREAD = 16
-#: Fewest rays per task worth a thread.
-MIN_TASK = 64
+#: Rays a thread claims at a time (rays cost unevenly: small claims keep every thread busy to the end).
+CHUNK = 32
+#: Fewest rays per thread worth starting one.
+MIN_TASK = 256
 
 
 def threads() -> int:
@@ -122,14 +122,15 @@ def _run(params: tuple, arrays: list[np.ndarray]) -> tuple[np.ndarray, ...]:
         np.empty(n, np.bool_),
     )
     consts, flags = constants(dtype), np.asarray(params, np.int64)
-    run = functools.partial(cpu_kernel.trace_rays, *arrays, consts, flags)
-    workers = threads()
-    tasks = min(n, workers * TASKS_PER_THREAD) if n >= workers * MIN_TASK else 1
-    bounds = [n * k // tasks for k in range(tasks + 1)]
-    if tasks <= 1:
-        run(0, n, *out)
-    else:  # the kernel releases the GIL: ranges run in parallel, small tasks balance uneven rays
-        list(_pool().map(lambda k: run(bounds[k], bounds[k + 1], *out), range(tasks)))
+    counter = np.zeros(1, np.int64)
+    run = functools.partial(cpu_kernel.trace_rays, *arrays, consts, flags, counter, CHUNK, n, *out)
+    workers = min(threads(), -(-n // MIN_TASK))
+    # The kernel releases the GIL; each thread claims chunks of rays from the shared counter until none is
+    # left, so uneven rays balance without a task per chunk. This thread is one of the workers.
+    helpers = [_pool().submit(run) for _ in range(workers - 1)]
+    run()
+    for helper in helpers:
+        helper.result()
     return out
 
 
