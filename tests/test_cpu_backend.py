@@ -293,6 +293,23 @@ def test_no_recompile_within_a_bucket():
     assert len(cpu_kernel.trace_rays.signatures) == kernels
 
 
+def test_threads_claiming_chunks_equal_one_thread(monkeypatch):
+    """Several threads claim chunks of rays from one counter: every ray is traced once, as by one thread."""
+    v, f, origin, direction = _mesh_and_rays(5000, seed=3)
+    structure = rt.build_primitive_structure(rt.TriangleGeometry(v, f))
+    intersector = rt.Intersector(rt.tags.triangle_data, rt.tags.stats, backend="cpu")
+    rays = rt.Ray(origin, direction)
+    results = []
+    for count in ("1", "3"):
+        monkeypatch.setenv("JAXRT_CPU_THREADS", count)
+        assert cpu.threads() == int(count)
+        results.append(intersector.intersect(rays, structure))
+    one, several = results
+    assert (np.asarray(one.type) != 0).any() and (np.asarray(one.type) == 0).any()
+    for name in FIELDS + STATS:
+        np.testing.assert_array_equal(np.asarray(several[name]), np.asarray(one[name]), err_msg=name)
+
+
 # --- backend choice ---------------------------------------------------------------------------------------------
 
 
