@@ -37,7 +37,7 @@ from jaxrt._src import numerics
 from jaxrt._src.primitives import box
 from jaxrt._src.traversal.scene import TraversalLayout, TraversalResult, TraversalScene
 
-__all__ = ["constants", "trace_scene", "unavailable_reason"]
+__all__ = ["constants", "kernel_arguments", "trace_scene", "unavailable_reason"]
 
 #: Base ranks of the callback's arguments (scene arrays, then rays); leading axes beyond them are vmap axes.
 _SCENE_RANKS = (3, 3, 2, 3, 3, 1, 1, 1)
@@ -172,6 +172,43 @@ def _host_arrays(params: tuple, *args: np.ndarray) -> tuple[np.ndarray, ...]:
     return tuple(np.stack(parts).reshape(*batch, *parts[0].shape) for parts in zip(*results, strict=True))
 
 
+def _params(layout: TraversalLayout, any_hit: bool, cull: int) -> tuple[int, ...]:
+    """The kernel's integer parameters (static)."""
+    return (int(layout.root), int(layout.primitive_leaves), int(layout.levels), int(layout.stack_size), int(bool(any_hit)), int(cull))  # fmt: skip
+
+
+def _arguments(scene: TraversalScene, origin, direction, t_min, t_max, enabled, mask, floats) -> tuple:
+    """The callback's arguments in the kernel's order; ``floats`` converts the float ones."""
+    return (
+        floats(scene.node_lower),
+        floats(scene.node_upper),
+        scene.node_children.astype(jnp.int32),
+        floats(scene.leaf_triangle),
+        floats(scene.instance_world_to_object),
+        scene.instance_child_root.astype(jnp.int32),
+        scene.instance_facing.astype(jnp.int32),
+        scene.instance_mask.astype(jnp.uint32),
+        *(floats(a) for a in (origin, direction, t_min, t_max)),
+        enabled.astype(bool),
+        mask.astype(jnp.uint32),
+    )
+
+
+def kernel_arguments(structure: Any, rays: Any, intersector: Any) -> tuple[tuple[int, ...], list[np.ndarray]]:
+    """``(params, arrays)`` for calling the compiled traversal directly on host arrays (outside ``jit``), as the
+    intersector's callback would for ``rays`` (a :class:`jaxrt.Ray` of shape ``(N,)``): for benchmarks."""
+    from jaxrt._src.pipeline import SanitizedRays
+    from jaxrt._src.scene_view import scene_view
+
+    view = scene_view(structure)
+    ray = SanitizedRays(rays)
+    params = _params(view.layout, intersector.accept_any_intersection, intersector.cull)
+    args = _arguments(
+        view.traversal, ray.origin, ray.direction, ray.t_min, ray.t_max, ray.enabled, ray.mask, lambda a: a
+    )
+    return params, [np.ascontiguousarray(a) for a in args]
+
+
 def trace_scene(
     scene: TraversalScene,
     layout: TraversalLayout,
@@ -206,23 +243,11 @@ def trace_scene(
     if origin.dtype != dtype:
         raise ValueError(f"traversal.cpu.trace_scene: rays are {origin.dtype} but the scene is {dtype}")
     levels = int(layout.levels)
-    params = (int(layout.root), int(layout.primitive_leaves), levels, int(layout.stack_size), int(bool(any_hit)), int(cull))  # fmt: skip
+    params = _params(layout, any_hit, cull)
     detached = lax.stop_gradient
     wide = jnp.dtype(dtype).itemsize == 8
     words = lambda a: lax.bitcast_convert_type(detached(a).astype(dtype), jnp.uint32) if wide else detached(a)  # noqa: E731
-    args = (
-        words(scene.node_lower),
-        words(scene.node_upper),
-        scene.node_children.astype(jnp.int32),
-        words(scene.leaf_triangle),
-        words(scene.instance_world_to_object),
-        scene.instance_child_root.astype(jnp.int32),
-        scene.instance_facing.astype(jnp.int32),
-        scene.instance_mask.astype(jnp.uint32),
-        *(words(a) for a in (origin, direction, t_min, t_max)),
-        enabled.astype(bool),
-        mask.astype(jnp.uint32),
-    )
+    args = _arguments(scene, origin, direction, t_min, t_max, enabled, mask, words)
     n = origin.shape[0]
     shapes = (
         jax.ShapeDtypeStruct((n, 2), jnp.uint32) if wide else jax.ShapeDtypeStruct((n,), dtype),
