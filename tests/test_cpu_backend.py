@@ -310,6 +310,23 @@ def test_threads_claiming_chunks_equal_one_thread(monkeypatch):
         np.testing.assert_array_equal(np.asarray(several[name]), np.asarray(one[name]), err_msg=name)
 
 
+def test_scene_read_in_place_equals_the_scene_passed_through_the_callback():
+    """At top level the traversal reads the structure's buffers in place; under ``jit`` (a trace) it receives
+    them through the callback. Both give the same result."""
+    v, f, origin, direction = _mesh_and_rays(300, seed=2)
+    structure = rt.build_primitive_structure(rt.TriangleGeometry(v, f))
+    rays = rt.Ray(origin, direction)
+    assert cpu.host_scene(structure, rays) is not None
+    intersector = rt.Intersector(rt.tags.triangle_data, rt.tags.stats, backend="cpu")
+    in_place = intersector.intersect(rays, structure)
+    passed = jax.jit(intersector.intersect)(rays, structure)
+    assert (np.asarray(in_place.type) != 0).any()
+    for name in FIELDS + STATS:
+        np.testing.assert_array_equal(np.asarray(in_place[name]), np.asarray(passed[name]), err_msg=name)
+    instanced = rt.build_instance_structure([structure], rt.Instances([0], np.eye(3, 4, dtype=np.float32)[None]))
+    assert cpu.host_scene(instanced, rays) is None
+
+
 # --- backend choice ---------------------------------------------------------------------------------------------
 
 

@@ -23,6 +23,7 @@ Composition:
 
 from __future__ import annotations
 
+import ctypes
 import functools
 import os
 from concurrent.futures import ThreadPoolExecutor
@@ -37,7 +38,7 @@ from jaxrt._src import numerics
 from jaxrt._src.primitives import box
 from jaxrt._src.traversal.scene import TraversalLayout, TraversalResult, TraversalScene
 
-__all__ = ["constants", "kernel_arguments", "trace_scene", "unavailable_reason"]
+__all__ = ["constants", "host_scene", "kernel_arguments", "trace_scene", "unavailable_reason"]
 
 #: Base ranks of the callback's arguments (scene arrays, then rays); leading axes beyond them are vmap axes.
 _SCENE_RANKS = (3, 3, 2, 3, 3, 1, 1, 1)
@@ -134,22 +135,69 @@ def _run(params: tuple, arrays: list[np.ndarray]) -> tuple[np.ndarray, ...]:
     return out
 
 
-def _host(params: tuple, wide: bool, *args: np.ndarray) -> tuple[np.ndarray, ...]:
+def _host(params: tuple, wide: bool, hosted: tuple | None, *args: np.ndarray) -> tuple[np.ndarray, ...]:
     """The callback: ``args`` may carry leading vmap axes (size 1 where an argument is not batched).
 
     Float64 arrays travel both ways as pairs of uint32 words (``wide``): JAX converts a callback's float64
     arguments and results to float32 when the thread that runs it has ``jax_enable_x64`` off
-    (``jax.enable_x64`` is a per-thread setting).
+    (``jax.enable_x64`` is a per-thread setting). With ``hosted`` (the shapes and dtypes of the node and
+    triangle arrays), the first argument holds their addresses (:func:`host_scene`) in place of the arrays.
     """
+    if hosted is not None:
+        words = np.asarray(args[0]).reshape(-1, 2)[: len(hosted)].astype(np.uint64)
+        addresses = words[:, 0] | (words[:, 1] << np.uint64(32))
+        args = (*(_at(int(a), shape, dtype) for a, (shape, dtype) in zip(addresses, hosted, strict=True)), *args[1:])
     if wide:
+        start = 0 if hosted is None else len(hosted)
         args = tuple(
-            np.ascontiguousarray(a).view(np.float64)[..., 0] if i in _FLOAT_ARGS else a for i, a in enumerate(args)
+            np.ascontiguousarray(a).view(np.float64)[..., 0] if i in _FLOAT_ARGS and i >= start else a
+            for i, a in enumerate(args)
         )
     out = _host_arrays(params, *args)
     distance = out[0]
     if wide:
         distance = distance.view(np.uint32).reshape(*distance.shape, 2)
     return (distance, *out[1:])
+
+
+def _at(address: int, shape: tuple[int, ...], dtype: str) -> np.ndarray:
+    """A read-only array over ``address`` (no copy)."""
+    size = int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
+    if size == 0:
+        return np.zeros(shape, dtype)
+    array = np.frombuffer((ctypes.c_char * size).from_address(address), dtype).reshape(shape)
+    array.flags.writeable = False
+    return array
+
+
+def host_scene(structure: Any, rays: Any) -> np.ndarray | None:
+    """The addresses of a primitive structure's node and triangle buffers (``(4, 2)`` uint32 words), for the
+    CPU traversal to read them in place instead of receiving copies through the callback; ``None`` where that
+    is not safe: inside a trace (under ``jit``, ``vmap`` or ``grad`` an address could outlive its buffer), for
+    instance structures (their node arrays are assembled inside the program), or for arrays that are not
+    single-device CPU buffers.
+
+    The addresses are valid while the program that is passed the structure runs: an executing program keeps
+    its argument buffers alive, and the traversal reads them only then.
+    """
+    from jaxrt._src.structures import PrimitiveAccelerationStructure
+
+    if type(structure) is not PrimitiveAccelerationStructure:
+        return None
+    leaves = jax.tree_util.tree_leaves((structure, rays))
+    if any(isinstance(x, jax.core.Tracer) for x in leaves):
+        return None
+    arrays = (structure.node_lower, structure.node_upper, structure.node_children, structure.leaf_triangle)
+    if structure.node_children.dtype != jnp.int32 or not all(isinstance(a, jax.Array) for a in arrays):
+        return None
+    # Every array on the default CPU device: the program runs there on these very buffers (no transfer).
+    devices = {d for x in leaves if isinstance(x, jax.Array) for d in x.devices()}
+    if devices != jnp.zeros(()).devices() or next(iter(devices)).platform != "cpu":
+        return None
+    if any(a.is_deleted() for a in arrays):
+        return None
+    addresses = [a.unsafe_buffer_pointer() for a in arrays]
+    return np.array([[a & 0xFFFFFFFF, a >> 32] for a in addresses], np.uint32)
 
 
 def _host_arrays(params: tuple, *args: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -221,6 +269,7 @@ def trace_scene(
     *,
     any_hit: bool,
     cull: int,
+    host: Any = None,
 ) -> TraversalResult:
     """Trace rays through a scene of any instance depth with the compiled CPU traversal.
 
@@ -235,6 +284,8 @@ def trace_scene(
       any_hit: stop at the first accepted hit.
       cull: 0 culls nothing, +1 clockwise triangles, -1 counterclockwise ones; below instances the sense is
         multiplied by the chain's ``instance_facing``.
+      host: ``None``, or the addresses of ``scene``'s node and triangle arrays (:func:`host_scene`) when
+        ``scene`` holds the arrays of a primitive structure passed to the running program: read in place.
 
     Returns:
       The portable traversal's :class:`~jaxrt._src.traversal.scene.TraversalResult`.
@@ -257,6 +308,11 @@ def trace_scene(
         jax.ShapeDtypeStruct((n,), jnp.int32),
         jax.ShapeDtypeStruct((n,), jnp.bool_),
     )
-    out = jax.pure_callback(functools.partial(_host, params, wide), shapes, *args, vmap_method="expand_dims")
+    hosted = None
+    if host is not None:  # the node and triangle arrays are read in place (see host_scene)
+        hosted = tuple((tuple(a.shape), jnp.dtype(a.dtype).name) for a in (scene.node_lower, scene.node_upper, scene.node_children, scene.leaf_triangle))  # fmt: skip
+        args = (jnp.asarray(host, jnp.uint32), *args[4:])
+    callback = functools.partial(_host, params, wide, hosted)
+    out = jax.pure_callback(callback, shapes, *args, vmap_method="expand_dims")
     distance = lax.bitcast_convert_type(out[0], dtype) if wide else out[0]
     return TraversalResult(distance, *out[1:])
