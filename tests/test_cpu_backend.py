@@ -311,16 +311,18 @@ def test_threads_claiming_chunks_equal_one_thread(monkeypatch):
 
 
 def test_scene_read_in_place_equals_the_scene_passed_through_the_callback():
-    """At top level the traversal reads the structure's buffers in place; under ``jit`` (a trace) it receives
-    them through the callback. Both give the same result."""
+    """At top level the traversal reads the structure's and the rays' buffers in place; under ``jit`` (a trace)
+    it receives them through the callback. Both give the same result, disabled rays included."""
     v, f, origin, direction = _mesh_and_rays(300, seed=2)
     structure = rt.build_primitive_structure(rt.TriangleGeometry(v, f))
-    rays = rt.Ray(origin, direction)
-    assert cpu.host_scene(structure, rays) is not None
+    origin[::7] = np.nan  # disabled rays: their own values are in the buffers read in place
+    rays = rt.Ray(origin, direction, 0.0, np.where(np.arange(300) % 5 == 0, 1.5, np.inf).astype(np.float32))
+    assert cpu.host_scene(structure, rays).shape == (8, 2)
+    assert cpu.host_scene(structure, rays, with_rays=False).shape == (4, 2)
     intersector = rt.Intersector(rt.tags.triangle_data, rt.tags.stats, backend="cpu")
     in_place = intersector.intersect(rays, structure)
     passed = jax.jit(intersector.intersect)(rays, structure)
-    assert (np.asarray(in_place.type) != 0).any()
+    assert (np.asarray(in_place.type) != 0).any() and (np.asarray(in_place.nodes_visited)[::7] == 0).all()
     for name in FIELDS + STATS:
         np.testing.assert_array_equal(np.asarray(in_place[name]), np.asarray(passed[name]), err_msg=name)
     instanced = rt.build_instance_structure([structure], rt.Instances([0], np.eye(3, 4, dtype=np.float32)[None]))

@@ -253,7 +253,7 @@ def intersect(intersector: Any, rays: Ray, structure: Any) -> IntersectionResult
     if resolve_backend(intersector) == "cpu":  # the CPU traversal reads a concrete scene in place
         from jaxrt._src.traversal import cpu
 
-        host = cpu.host_scene(structure, flat)
+        host = cpu.host_scene(structure, flat, with_rays=padded <= chunk)
     if padded <= chunk:
         result = _intersect_jit(intersector, flat, structure, host)
     else:

@@ -146,11 +146,14 @@ def _host(params: tuple, wide: bool, hosted: tuple | None, *args: np.ndarray) ->
     if hosted is not None:
         words = np.asarray(args[0]).reshape(-1, 2)[: len(hosted)].astype(np.uint64)
         addresses = words[:, 0] | (words[:, 1] << np.uint64(32))
-        args = (*(_at(int(a), shape, dtype) for a, (shape, dtype) in zip(addresses, hosted, strict=True)), *args[1:])
+        in_place = {i: _at(int(a), shape, dtype) for a, (i, shape, dtype) in zip(addresses, hosted, strict=True)}
+        rest = iter(args[1:])
+        args = tuple(in_place[i] if i in in_place else next(rest) for i in range(len(_SCENE_RANKS + _RAY_RANKS)))
     if wide:
-        start = 0 if hosted is None else len(hosted)
         args = tuple(
-            np.ascontiguousarray(a).view(np.float64)[..., 0] if i in _FLOAT_ARGS and i >= start else a
+            np.ascontiguousarray(a).view(np.float64)[..., 0]
+            if i in _FLOAT_ARGS and (hosted is None or all(i != h[0] for h in hosted))
+            else a
             for i, a in enumerate(args)
         )
     out = _host_arrays(params, *args)
@@ -170,8 +173,10 @@ def _at(address: int, shape: tuple[int, ...], dtype: str) -> np.ndarray:
     return array
 
 
-def host_scene(structure: Any, rays: Any) -> np.ndarray | None:
-    """The addresses of a primitive structure's node and triangle buffers (``(4, 2)`` uint32 words), for the
+def host_scene(structure: Any, rays: Any, *, with_rays: bool = True) -> np.ndarray | None:
+    """The addresses of a primitive structure's node and triangle buffers, and of the flat rays' origin,
+    direction and interval where they have the scene's dtype and ``with_rays`` (the program traces them in one
+    piece, not in chunks) (``(4, 2)`` or ``(8, 2)`` uint32 words), for the
     CPU traversal to read them in place instead of receiving copies through the callback; ``None`` where that
     is not safe: inside a trace (under ``jit``, ``vmap`` or ``grad`` an address could outlive its buffer), for
     instance structures (their node arrays are assembled inside the program), or for arrays that are not
@@ -196,6 +201,17 @@ def host_scene(structure: Any, rays: Any) -> np.ndarray | None:
         return None
     if any(a.is_deleted() for a in arrays):
         return None
+    # The rays too, where they are arrays of the scene's dtype: enabled rays are traced as given (the
+    # sanitised copy differs only in disabled rays, which the kernel skips).
+    ray_arrays = (rays.origin, rays.direction, rays.min_distance, rays.max_distance)
+    dtype = structure.node_lower.dtype
+    n = rays.origin.shape[0] if rays.origin.ndim == 2 else -1
+    shapes = ((n, 3), (n, 3), (n,), (n,))
+    if with_rays and all(
+        isinstance(a, jax.Array) and a.dtype == dtype and a.shape == s for a, s in zip(ray_arrays, shapes, strict=True)
+    ):
+        if not any(a.is_deleted() for a in ray_arrays):
+            arrays += ray_arrays
     addresses = [a.unsafe_buffer_pointer() for a in arrays]
     return np.array([[a & 0xFFFFFFFF, a >> 32] for a in addresses], np.uint32)
 
@@ -284,8 +300,9 @@ def trace_scene(
       any_hit: stop at the first accepted hit.
       cull: 0 culls nothing, +1 clockwise triangles, -1 counterclockwise ones; below instances the sense is
         multiplied by the chain's ``instance_facing``.
-      host: ``None``, or the addresses of ``scene``'s node and triangle arrays (:func:`host_scene`) when
-        ``scene`` holds the arrays of a primitive structure passed to the running program: read in place.
+      host: ``None``, or the addresses of ``scene``'s node and triangle arrays and maybe of the rays
+        (:func:`host_scene`): the arrays of a primitive structure and rays passed to the running program,
+        read in place (a disabled ray's own values are read, and skipped).
 
     Returns:
       The portable traversal's :class:`~jaxrt._src.traversal.scene.TraversalResult`.
@@ -309,9 +326,14 @@ def trace_scene(
         jax.ShapeDtypeStruct((n,), jnp.bool_),
     )
     hosted = None
-    if host is not None:  # the node and triangle arrays are read in place (see host_scene)
-        hosted = tuple((tuple(a.shape), jnp.dtype(a.dtype).name) for a in (scene.node_lower, scene.node_upper, scene.node_children, scene.leaf_triangle))  # fmt: skip
-        args = (jnp.asarray(host, jnp.uint32), *args[4:])
+    if host is not None:  # arrays read in place (see host_scene): the scene's, and maybe the rays'
+        in_place = (0, 1, 2, 3) if host.shape[0] == 4 else (0, 1, 2, 3, 8, 9, 10, 11)
+        sources = (scene.node_lower, scene.node_upper, scene.node_children, scene.leaf_triangle, origin, direction, t_min, t_max)  # fmt: skip
+        hosted = tuple(
+            (i, tuple(a.shape), jnp.dtype(a.dtype).name)
+            for i, a in zip(in_place, sources[: len(in_place)], strict=True)
+        )
+        args = (jnp.asarray(host, jnp.uint32), *(a for i, a in enumerate(args) if i not in in_place))
     callback = functools.partial(_host, params, wide, hosted)
     out = jax.pure_callback(callback, shapes, *args, vmap_method="expand_dims")
     distance = lax.bitcast_convert_type(out[0], dtype) if wide else out[0]
