@@ -329,6 +329,23 @@ def test_scene_read_in_place_equals_the_scene_passed_through_the_callback():
     assert cpu.host_scene(instanced, rays) is None
 
 
+def test_buffers_read_in_place_are_held_while_the_call_runs():
+    """A structure dropped by the caller right after ``intersect`` returns (the call runs asynchronously) is
+    still read correctly: the program keeps every buffer the traversal reads in place."""
+    v, f, origin, direction = _mesh_and_rays(256, seed=4)
+    rays = rt.Ray(origin, direction)
+    build = lambda: rt.build_primitive_structure(rt.TriangleGeometry(v, f))  # noqa: E731
+    expected = np.asarray(rt.Intersector(backend="portable").intersect(rays, build()).primitive_id)
+    assert (expected >= 0).any()
+    intersector = rt.Intersector(backend="cpu")
+    for _ in range(3):
+        results = [intersector.intersect(rays, build()).primitive_id for _ in range(6)]
+        clutter = [jnp.full((1 << 16,), -1.0) + i for i in range(8)]  # reuses freed memory, if any was freed
+        for result in results:
+            np.testing.assert_array_equal(np.asarray(result), expected)
+        del clutter
+
+
 # --- backend choice ---------------------------------------------------------------------------------------------
 
 

@@ -147,7 +147,7 @@ def _host(params: tuple, wide: bool, hosted: tuple | None, *args: np.ndarray) ->
         words = np.asarray(args[0]).reshape(-1, 2)[: len(hosted)].astype(np.uint64)
         addresses = words[:, 0] | (words[:, 1] << np.uint64(32))
         in_place = {i: _at(int(a), shape, dtype) for a, (i, shape, dtype) in zip(addresses, hosted, strict=True)}
-        rest = iter(args[1:])
+        rest = iter(args[2:])  # args[1]: one element of each, so that the program holds their buffers
         args = tuple(in_place[i] if i in in_place else next(rest) for i in range(len(_SCENE_RANKS + _RAY_RANKS)))
     if wide:
         args = tuple(
@@ -199,7 +199,7 @@ def host_scene(structure: Any, rays: Any, *, with_rays: bool = True) -> np.ndarr
     devices = {d for x in leaves if isinstance(x, jax.Array) for d in x.devices()}
     if devices != jnp.zeros(()).devices() or next(iter(devices)).platform != "cpu":
         return None
-    if any(a.is_deleted() for a in arrays):
+    if any(a.is_deleted() or a.size == 0 for a in arrays):
         return None
     # The rays too, where they are arrays of the scene's dtype: enabled rays are traced as given (the
     # sanitised copy differs only in disabled rays, which the kernel skips).
@@ -210,7 +210,7 @@ def host_scene(structure: Any, rays: Any, *, with_rays: bool = True) -> np.ndarr
     if with_rays and all(
         isinstance(a, jax.Array) and a.dtype == dtype and a.shape == s for a, s in zip(ray_arrays, shapes, strict=True)
     ):
-        if not any(a.is_deleted() for a in ray_arrays):
+        if not any(a.is_deleted() or a.size == 0 for a in ray_arrays):
             arrays += ray_arrays
     addresses = [a.unsafe_buffer_pointer() for a in arrays]
     return np.array([[a & 0xFFFFFFFF, a >> 32] for a in addresses], np.uint32)
@@ -333,7 +333,12 @@ def trace_scene(
             (i, tuple(a.shape), jnp.dtype(a.dtype).name)
             for i, a in zip(in_place, sources[: len(in_place)], strict=True)
         )
-        args = (jnp.asarray(host, jnp.uint32), *(a for i, a in enumerate(args) if i not in in_place))
+        # One element of each array read in place goes along: the program then uses, and so holds, every such
+        # buffer until it finishes (jit does not pass a program the arguments it does not use).
+        anchors = jnp.concatenate(
+            [lax.bitcast_convert_type(detached(a).reshape(-1)[:1], jnp.uint8).reshape(-1) for a in sources]
+        )
+        args = (jnp.asarray(host, jnp.uint32), anchors, *(a for i, a in enumerate(args) if i not in in_place))
     callback = functools.partial(_host, params, wide, hosted)
     out = jax.pure_callback(callback, shapes, *args, vmap_method="expand_dims")
     distance = lax.bitcast_convert_type(out[0], dtype) if wide else out[0]
