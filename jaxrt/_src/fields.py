@@ -11,6 +11,7 @@ holding the hit fixed. A scene without instances compiles none of the transform 
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import jax
@@ -138,6 +139,27 @@ def _box_distance(intersector, view, leaf, is_box, origin, direction, t_min, t_m
     return jnp.where(is_box, attached, jnp.inf)
 
 
+@functools.partial(jax.custom_jvp, nondiff_argnums=(1,))
+def _with_smooth_derivatives(
+    exact: jax.Array, index: int, origin: jax.Array, direction: jax.Array, vertices: jax.Array
+) -> jax.Array:
+    """``exact`` (a distance or barycentric of the watertight test), differentiated as output ``index`` of the
+    smooth plane hit :func:`jaxrt._src.primitives.triangle.smooth_hit` of ``(origin, direction, vertices)``.
+
+    The smooth formula is evaluated only when derivatives are taken: a forward pass returns ``exact`` as is.
+    """
+    del index, origin, direction, vertices
+    return exact
+
+
+@_with_smooth_derivatives.defjvp
+def _with_smooth_derivatives_jvp(index, primals, tangents):
+    exact, *inputs = primals
+    _, *input_tangents = tangents
+    _, smooth_tangent = jax.jvp(jax.vmap(triangle.smooth_hit), tuple(inputs), tuple(input_tangents))
+    return exact, smooth_tangent[index]
+
+
 def hit_fields(
     intersector: Any,
     view: SceneView,
@@ -197,14 +219,14 @@ def hit_fields(
     # overflow, and its zero cotangent times inf would be a NaN gradient.
     smooth_origin = jnp.where(hit[:, None], origin, 0.0)
     smooth_direction = jnp.where(hit[:, None], direction, unit_z)
-    smooth_t, smooth_u, smooth_v = jax.vmap(triangle.smooth_hit)(smooth_origin, smooth_direction, world_vertices)
+    smooth = (smooth_origin, smooth_direction, world_vertices)
 
-    def attach(exact, smooth):
-        return jnp.where(hit, detached(exact) + (smooth - detached(smooth)), 0.0)
+    def attach(exact, index):
+        return jnp.where(hit, _with_smooth_derivatives(detached(exact), index, *smooth), 0.0)
 
     fields: dict[str, Any] = {
         "type": kind,
-        "distance": jnp.where(hit, attach(distance, smooth_t), exact_distance),
+        "distance": jnp.where(hit, attach(distance, 0), exact_distance),
         "primitive_id": jnp.where(found, leaves.primitive[leaf], -1),
         "geometry_id": jnp.where(found, leaves.geometry[leaf], -1),
     }
@@ -212,7 +234,7 @@ def hit_fields(
         triangle_direction = jnp.where(hit[:, None], detached(object_direction), unit_z)
         sheared = jax.vmap(triangle.shear_ray)(detached(object_origin), triangle_direction)
         u, v, clockwise = jax.vmap(triangle.barycentrics)(sheared, detached(vertices))
-        fields["triangle_barycentric_coord"] = jnp.stack([attach(u, smooth_u), attach(v, smooth_v)], axis=-1)
+        fields["triangle_barycentric_coord"] = jnp.stack([attach(u, 1), attach(v, 2)], axis=-1)
         if transforms is not None:
             flips = jnp.prod(jnp.where(transforms.valid, view.instances.flip[transforms.g], 1), axis=1)
             clockwise = clockwise ^ (flips < 0)
