@@ -10,7 +10,11 @@ Each stage is jitted and timed alone on 2**20 rays (pipelined: 20 calls, one syn
 - ``scene pack`` / ``ray pack``: the packing passes alone;
 - ``fields``: the result fields from a found leaf (sanitising included), without the traversal;
 - ``intersect``: ``jax.jit(Intersector(backend="gpu").intersect)``, what users call;
-- ``intersect, no layout``: the same on the structure without its packed kernel layout, where the tree has one.
+- ``intersect, eager``: ``Intersector.intersect`` called without an enclosing ``jit``;
+- ``kernel+ray rows`` / ``ray rows``: as ``kernel+rays`` / ``ray pack`` with the row-wise ray packing, where the
+  tree has it;
+- ``intersect, no layout``: the jitted intersect on the structure without its packed kernel layout, where the
+  tree has one.
 
 Usage: ``python scripts/intersect_profile.py [--scenes bunny,sphere,soup] [--bunny FILE.npz] [--label NAME]``.
 The bunny is read from an ``.npz`` (``vertices``, ``indices``) or through ``jaxrt.bench.gpu.load_mesh_scene``.
@@ -20,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
 import statistics
 import sys
@@ -143,10 +148,32 @@ def profile(structure, ray: rt.Ray, any_hit: bool) -> dict[str, float]:
         "fields": _timed(lambda: fields_fn(structure, ray, leaf, distance)),
         "intersect": _timed(lambda: intersect_fn(ray, structure)),
     }
+    out["intersect, eager"] = _timed(lambda: intersector.intersect(ray, structure))
+    if hasattr(packed, "pack_ray_rows"):
+
+        def pack_rows(r):
+            s = SanitizedRays(r)
+            return packed.pack_ray_rows(s.origin, s.direction, s.t_min, s.t_max, s.enabled, size)
+
+        launch_rows = jax.jit(
+            lambda nd, tr, ins, r: gpu._launch(gpu.kernel_call(nd, tr, ins, pack_rows(r), config))[:2]
+        )
+        rows_fn = jax.jit(pack_rows)
+        out["kernel+ray rows"] = _timed(lambda: launch_rows(nodes, triangles, instances, ray))
+        out["ray rows"] = _timed(lambda: rows_fn(ray))
     bare = _without_layout(structure)
     if bare is not None:
         out["intersect, no layout"] = _timed(lambda: intersect_fn(ray, bare))
     result = intersect_fn(ray, structure)
+    digest = hashlib.sha256()
+    for name in sorted(result):
+        digest.update(np.asarray(result[name]).tobytes())
+    out["_digest"] = digest.hexdigest()[:16]  # equal digests: bit-identical fields (compare two trees)
+    if bare is not None:
+        other = intersect_fn(ray, bare)
+        out["_same_without_layout"] = all(
+            np.array_equal(np.asarray(result[k]).view(np.uint8), np.asarray(other[k]).view(np.uint8)) for k in result
+        )
     out["_check_leaf_primitive"] = bool(
         np.array_equal(
             np.asarray(result.primitive_id),
@@ -177,12 +204,17 @@ def main() -> None:
             print(f"{args.label} {name}/{query}: {results[f'{name}/{query}']}", file=sys.stderr, flush=True)
     stages = [k for k in next(iter(results.values())) if not k.startswith("_")]
     print(f"\n{args.label}: microseconds per call of {args.rays} rays (pipelined), Mrays/s of kernel and intersect")
-    print("| scene/query | " + " | ".join(stages) + " | kernel Mrays/s | intersect Mrays/s | check |")
+    print(
+        "| scene/query | "
+        + " | ".join(stages)
+        + " | kernel Mrays/s | intersect Mrays/s | leaf ok, digest, same without layout |"
+    )
     print("|---|" + "---|" * (len(stages) + 3))
     for key, r in results.items():
         cells = " | ".join(f"{r[s] * 1e6:.0f}" if s in r else "-" for s in stages)
         rates = f"{args.rays / r['kernel'] / 1e6:.0f} | {args.rays / r['intersect'] / 1e6:.0f}"
-        print(f"| {key} | {cells} | {rates} | {r['_check_leaf_primitive']} |")
+        check = f"{r['_check_leaf_primitive']} {r['_digest']} {r.get('_same_without_layout', '-')}"
+        print(f"| {key} | {cells} | {rates} | {check} |")
     if args.json:
         with open(args.json, "w") as f:
             json.dump(results, f, indent=1)
