@@ -11,8 +11,8 @@ Each stage is jitted and timed alone on 2**20 rays (pipelined: 20 calls, one syn
 - ``fields``: the result fields from a found leaf (sanitising included), without the traversal;
 - ``intersect``: ``jax.jit(Intersector(backend="gpu").intersect)``, what users call;
 - ``intersect, eager``: ``Intersector.intersect`` called without an enclosing ``jit``;
-- ``kernel+ray rows`` / ``ray rows``: as ``kernel+rays`` / ``ray pack`` with the row-wise ray packing, where the
-  tree has it;
+- ``kernel+SoA rays`` / ``SoA ray pack``: as ``kernel+rays`` / ``ray pack`` with the variant
+  :func:`pack_rays_soa` (origin and direction transposed first, then the block row by row; checked bit-equal);
 - ``intersect, no layout``: the jitted intersect on the structure without its packed kernel layout, where the
   tree has one.
 
@@ -33,9 +33,11 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax import lax
 
 import jaxrt as rt
 from jaxrt._src import fields as result_fields
+from jaxrt._src.numerics import safe_reciprocal
 from jaxrt._src.pipeline import SanitizedRays
 from jaxrt._src.scene_view import scene_view, traversal_scene
 from jaxrt._src.traversal import gpu, packed
@@ -43,6 +45,35 @@ from jaxrt.bench.rays import diffuse_rays, primary_rays, shadow_rays
 from jaxrt.bench.scenes import Scene, noisy_sphere, random_soup
 
 QUERIES = (("primary", False), ("diffuse", False), ("shadow", True))
+
+
+def _sheared_rows(dx, dy, dz):
+    """``triangle.shear_ray`` on direction components ``(N,)`` (the same operations, so the same bits)."""
+    ax, ay, az = jnp.abs(dx), jnp.abs(dy), jnp.abs(dz)
+    kz = jnp.where(ax >= ay, jnp.where(ax >= az, 0, 2), jnp.where(ay >= az, 1, 2)).astype(jnp.int32)
+    kx = (kz + 1) % 3
+    ky = (kx + 1) % 3
+
+    def component(k):
+        return jnp.where(k == 0, dx, jnp.where(k == 1, dy, dz))
+
+    d_z = component(kz)
+    kx, ky = jnp.where(d_z < 0, ky, kx), jnp.where(d_z < 0, kx, ky)
+    safe = jnp.where(d_z == 0, 1.0, d_z)
+    return kx, ky, kz, component(kx) / safe, component(ky) / safe, 1.0 / safe
+
+
+def pack_rays_soa(origin, direction, t_min, t_max, enabled, size):
+    """A variant of ``packed.pack_rays`` (the same bits): origin and direction transposed to ``(3, N)`` in a
+    pass of their own (an optimization barrier keeps XLA from fusing it into strided reads), then every row
+    of the block computed elementwise."""
+    n = origin.shape[0]
+    o, d = lax.optimization_barrier((origin.T, direction.T))
+    kx, ky, kz, sx, sy, sz = _sheared_rows(d[0], d[1], d[2])
+    rows = [o[0], o[1], o[2], *(safe_reciprocal(d[i]) for i in range(3)), sx, sy, sz]
+    rows += [t_min, jnp.where(enabled, t_max, -jnp.inf), kx, ky, kz, enabled]
+    rows = [r.astype(jnp.float32) for r in rows] + [jnp.zeros((n,), jnp.float32)]
+    return jnp.pad(jnp.stack(rows), ((0, 0), (0, size - n)))
 
 
 def _pipelined_s(fn, calls: int = 20) -> float:
@@ -149,18 +180,18 @@ def profile(structure, ray: rt.Ray, any_hit: bool) -> dict[str, float]:
         "intersect": _timed(lambda: intersect_fn(ray, structure)),
     }
     out["intersect, eager"] = _timed(lambda: intersector.intersect(ray, structure))
-    if hasattr(packed, "pack_ray_rows"):
 
-        def pack_rows(r):
-            s = SanitizedRays(r)
-            return packed.pack_ray_rows(s.origin, s.direction, s.t_min, s.t_max, s.enabled, size)
+    def pack_soa(r):
+        s = SanitizedRays(r)
+        return pack_rays_soa(s.origin, s.direction, s.t_min, s.t_max, s.enabled, size)
 
-        launch_rows = jax.jit(
-            lambda nd, tr, ins, r: gpu._launch(gpu.kernel_call(nd, tr, ins, pack_rows(r), config))[:2]
-        )
-        rows_fn = jax.jit(pack_rows)
-        out["kernel+ray rows"] = _timed(lambda: launch_rows(nodes, triangles, instances, ray))
-        out["ray rows"] = _timed(lambda: rows_fn(ray))
+    launch_soa = jax.jit(lambda nd, tr, ins, r: gpu._launch(gpu.kernel_call(nd, tr, ins, pack_soa(r), config))[:2])
+    soa_fn = jax.jit(pack_soa)
+    out["_soa_block_equal"] = bool(
+        np.array_equal(np.asarray(soa_fn(ray)).view(np.uint32), np.asarray(block).view(np.uint32))
+    )
+    out["kernel+SoA rays"] = _timed(lambda: launch_soa(nodes, triangles, instances, ray))
+    out["SoA ray pack"] = _timed(lambda: soa_fn(ray))
     bare = _without_layout(structure)
     if bare is not None:
         out["intersect, no layout"] = _timed(lambda: intersect_fn(ray, bare))
@@ -213,7 +244,9 @@ def main() -> None:
     for key, r in results.items():
         cells = " | ".join(f"{r[s] * 1e6:.0f}" if s in r else "-" for s in stages)
         rates = f"{args.rays / r['kernel'] / 1e6:.0f} | {args.rays / r['intersect'] / 1e6:.0f}"
-        check = f"{r['_check_leaf_primitive']} {r['_digest']} {r.get('_same_without_layout', '-')}"
+        check = (
+            f"{r['_check_leaf_primitive']} {r['_digest']} {r.get('_same_without_layout', '-')} {r['_soa_block_equal']}"
+        )
         print(f"| {key} | {cells} | {rates} | {check} |")
     if args.json:
         with open(args.json, "w") as f:

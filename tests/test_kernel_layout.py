@@ -1,4 +1,4 @@
-"""The GPU kernel's rows packed once in the structure (``kernel_layout``) and the row-wise ray block.
+"""The GPU kernel's rows packed once in the structure (``kernel_layout``).
 
 Every way a primitive structure is made (build, batched build, refit, compaction, loading) must leave its
 packed rows equal, bit for bit, to packing its arrays; a structure without them is packed per call, with the
@@ -122,38 +122,6 @@ def test_instance_structures_hold_primitive_structures_with_layouts():
     top = rt.build_instance_structure([inner], instances)
     _assert_layout_matches(top.primitive_structures[0])
     _assert_layout_matches(rt.compact(top).primitive_structures[0])
-
-
-# --- the row-wise ray block -------------------------------------------------------------------------------------
-
-
-@pytest.mark.parametrize("extended", [False, True])
-def test_pack_ray_rows_equals_pack_rays(extended):
-    """Bit for bit, with zero, negative-zero, tiny and huge components, ties between axes and disabled rays."""
-    rng = np.random.default_rng(5)
-    n = 400
-    origin = rng.normal(size=(n, 3)).astype(np.float32)
-    direction = rng.normal(size=(n, 3)).astype(np.float32)
-    direction[::7, 0] = 0.0
-    direction[::11, 1] = -0.0
-    direction[::13] = [0.0, 0.0, 1e-30]
-    direction[::17] = [3e38, -1.0, 0.0]
-    direction[::19, 2] = -direction[::19, 0]
-    t_min = rng.uniform(0, 1, n).astype(np.float32)
-    t_max = np.where(np.arange(n) % 5 == 0, np.inf, rng.uniform(1, 5, n)).astype(np.float32)
-    enabled = rng.uniform(size=n) > 0.2
-    extra = {}
-    if extended:
-        extra = dict(mask=rng.integers(0, 2**32, n, dtype=np.uint32), root=rng.integers(0, 99, n).astype(np.int32))
-    for size in (n, 416):
-        want = jax.jit(lambda *a, size=size: packed.pack_rays(*a, size, **extra))(
-            origin, direction, t_min, t_max, enabled
-        )
-        got = jax.jit(lambda *a, size=size: packed.pack_ray_rows(*a, size, **extra))(
-            origin, direction, t_min, t_max, enabled
-        )
-        assert got.shape == want.shape == ((20 if extended else 16), size)
-        np.testing.assert_array_equal(_bits(got), _bits(want))
 
 
 # --- the kernel with the prepacked rows ----------------------------------------------------------------------

@@ -262,7 +262,7 @@ def _kernel(*args, config: _Config) -> tuple[jax.Array, ...]:
         triangles = packed.pack_triangles(leaf_triangle)
     instances = packed.pack_instances(world_to_object, child_root, facing, instance_mask)
     extended = config.levels > 0 or config.roots
-    rays = packed.pack_ray_rows(
+    rays = packed.pack_rays(
         origin, direction, t_min, t_max, enabled, size, mask=mask if extended else None, root=root if extended else None
     )
     out = _launch(kernel_call(nodes, triangles, instances, rays, config))

@@ -73,7 +73,6 @@ __all__ = [
     "pack_triangles",
     "pack_instances",
     "pack_rays",
-    "pack_ray_rows",
     "KernelLayout",
     "kernel_layout",
 ]
@@ -258,52 +257,6 @@ def pack_rays(
     )
     columns = jnp.pad(columns, ((0, size - n), (0, 0)))
     return columns.T
-
-
-def _sheared_rows(dx: jax.Array, dy: jax.Array, dz: jax.Array) -> tuple[jax.Array, ...]:
-    """:func:`~jaxrt._src.primitives.triangle.shear_ray` on direction components ``(N,)``: the same
-    operations, so the same bits, as rows ``(kx, ky, kz, Sx, Sy, Sz)``."""
-    ax, ay, az = jnp.abs(dx), jnp.abs(dy), jnp.abs(dz)
-    kz = jnp.where(ax >= ay, jnp.where(ax >= az, 0, 2), jnp.where(ay >= az, 1, 2)).astype(jnp.int32)
-    kx = (kz + 1) % 3
-    ky = (kx + 1) % 3
-
-    def component(k):
-        return jnp.where(k == 0, dx, jnp.where(k == 1, dy, dz))
-
-    d_z = component(kz)
-    kx, ky = jnp.where(d_z < 0, ky, kx), jnp.where(d_z < 0, kx, ky)
-    safe = jnp.where(d_z == 0, 1.0, d_z)
-    return kx, ky, kz, component(kx) / safe, component(ky) / safe, 1.0 / safe
-
-
-def pack_ray_rows(
-    origin: jax.Array,
-    direction: jax.Array,
-    t_min: jax.Array,
-    t_max: jax.Array,
-    enabled: jax.Array,
-    size: int,
-    *,
-    mask: jax.Array | None = None,
-    root: jax.Array | None = None,
-) -> jax.Array:
-    """:func:`pack_rays`, bit for bit, computed row by row: every row is an elementwise function of the ray
-    arrays, so the block is written in one pass (no ``(N, 16)`` intermediate and transpose)."""
-    n = origin.shape[0]
-    ox, oy, oz = origin[:, 0], origin[:, 1], origin[:, 2]
-    dx, dy, dz = direction[:, 0], direction[:, 1], direction[:, 2]
-    kx, ky, kz, sx, sy, sz = _sheared_rows(dx, dy, dz)
-    rows = [ox, oy, oz, safe_reciprocal(dx), safe_reciprocal(dy), safe_reciprocal(dz), sx, sy, sz]
-    rows += [t_min, jnp.where(enabled, t_max, -jnp.inf), kx, ky, kz, enabled]
-    rows = [r.astype(jnp.float32) for r in rows]
-    if mask is None or root is None:
-        rows.append(jnp.zeros((n,), jnp.float32))
-    else:
-        rows.append(lax.bitcast_convert_type(mask.astype(jnp.uint32), jnp.float32))
-        rows.append(lax.bitcast_convert_type(root.astype(jnp.int32), jnp.float32))
-        rows += [d.astype(jnp.float32) for d in (dx, dy, dz)]
-    return jnp.pad(jnp.stack(rows), ((0, 0), (0, size - n)))
 
 
 class KernelLayout(NamedTuple):
