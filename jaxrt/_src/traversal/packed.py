@@ -1,8 +1,10 @@
 """Packed arrays read by the GPU traversal kernel, derived from a structure and a ray batch.
 
 The kernel reads one node with four 16-byte loads and one triangle with three, so the structure's arrays are
-repacked into rows of float32 quads (children bit-cast to float32). The packing is a cheap elementwise pass
-(about 110 bytes per primitive), done inside every traced call: structures stay the one source of truth.
+repacked into rows of float32 quads (children bit-cast to float32), 112 bytes per leaf slot. Structures built
+where the kernel runs hold these node and triangle rows (:class:`KernelLayout`, packed at build time and
+kept consistent by refit, compaction and loading); for other structures (and instanced scenes) the kernel
+call packs them per call. The ray block is packed in every call.
 
 Node row, ``(C-1, 16)`` float32, one per internal node (both child boxes in the parent, as in Aila & Laine,
 "Understanding the Efficiency of Ray Traversal on GPUs", HPG 2009):
