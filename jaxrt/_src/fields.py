@@ -76,6 +76,25 @@ class _Chain:
         self.origin, self.direction = origin, direction
 
 
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _with_smooth_tangent(which: int, exact, origin, direction, vertices):
+    """``exact`` (the traversal's value), differentiated as output ``which`` (distance, u, v) of the smooth
+    re-intersection :func:`~jaxrt._src.primitives.triangle.smooth_hit` of the rays with the triangles.
+
+    The smooth formula runs only where a derivative is taken: a plain call reads no vertices for it.
+    """
+    return exact
+
+
+@_with_smooth_tangent.defjvp
+def _with_smooth_tangent_jvp(which, primals, tangents):
+    exact, origin, direction, vertices = primals
+    _, d_origin, d_direction, d_vertices = tangents
+    smooth = jax.vmap(triangle.smooth_hit)
+    _, tangent = jax.jvp(smooth, (origin, direction, vertices), (d_origin, d_direction, d_vertices))
+    return exact, tangent[which]
+
+
 def _pad_levels(values: jax.Array, n: int, fill) -> jax.Array:
     """``(rays, L)`` to ``(rays, n)`` with ``fill`` past ``L``."""
     extra = n - values.shape[1]
@@ -139,27 +158,6 @@ def _box_distance(intersector, view, leaf, is_box, origin, direction, t_min, t_m
     return jnp.where(is_box, attached, jnp.inf)
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(1,))
-def _with_smooth_derivatives(
-    exact: jax.Array, index: int, origin: jax.Array, direction: jax.Array, vertices: jax.Array
-) -> jax.Array:
-    """``exact`` (a distance or barycentric of the watertight test), differentiated as output ``index`` of the
-    smooth plane hit :func:`jaxrt._src.primitives.triangle.smooth_hit` of ``(origin, direction, vertices)``.
-
-    The smooth formula is evaluated only when derivatives are taken: a forward pass returns ``exact`` as is.
-    """
-    del index, origin, direction, vertices
-    return exact
-
-
-@_with_smooth_derivatives.defjvp
-def _with_smooth_derivatives_jvp(index, primals, tangents):
-    exact, *inputs = primals
-    _, *input_tangents = tangents
-    _, smooth_tangent = jax.jvp(jax.vmap(triangle.smooth_hit), tuple(inputs), tuple(input_tangents))
-    return exact, smooth_tangent[index]
-
-
 def hit_fields(
     intersector: Any,
     view: SceneView,
@@ -219,16 +217,18 @@ def hit_fields(
     # overflow, and its zero cotangent times inf would be a NaN gradient.
     smooth_origin = jnp.where(hit[:, None], origin, 0.0)
     smooth_direction = jnp.where(hit[:, None], direction, unit_z)
-    smooth = (smooth_origin, smooth_direction, world_vertices)
 
-    def attach(exact, index):
-        return jnp.where(hit, _with_smooth_derivatives(detached(exact), index, *smooth), 0.0)
+    def attach(exact, which):
+        value = _with_smooth_tangent(which, detached(exact), smooth_origin, smooth_direction, world_vertices)
+        return jnp.where(hit, value, 0.0)
 
+    # A primitive structure of one geometry: every real leaf is geometry 0 (no gather per ray).
+    one_geometry = view.levels == 0 and len(view.geometry_info) == 1
     fields: dict[str, Any] = {
         "type": kind,
         "distance": jnp.where(hit, attach(distance, 0), exact_distance),
         "primitive_id": jnp.where(found, leaves.primitive[leaf], -1),
-        "geometry_id": jnp.where(found, leaves.geometry[leaf], -1),
+        "geometry_id": jnp.where(found, jnp.int32(0) if one_geometry else leaves.geometry[leaf], jnp.int32(-1)),
     }
     if intersector.has("triangle_data"):
         triangle_direction = jnp.where(hit[:, None], detached(object_direction), unit_z)

@@ -264,4 +264,6 @@ def intersect(intersector: Any, rays: Ray, structure: Any) -> IntersectionResult
         result = _intersect_jit(intersector, flat, structure, host)
     else:
         result = _intersect_chunks(intersector, flat, structure, chunk, host)
+    if padded == n and shape == (n,):  # nothing to cut or reshape (no extra dispatch per field)
+        return result
     return jax.tree_util.tree_map(lambda a: a[:n].reshape(*shape, *a.shape[1:]), result)
