@@ -293,6 +293,59 @@ def test_no_recompile_within_a_bucket():
     assert len(cpu_kernel.trace_rays.signatures) == kernels
 
 
+def test_threads_claiming_chunks_equal_one_thread(monkeypatch):
+    """Several threads claim chunks of rays from one counter: every ray is traced once, as by one thread."""
+    v, f, origin, direction = _mesh_and_rays(5000, seed=3)
+    structure = rt.build_primitive_structure(rt.TriangleGeometry(v, f))
+    intersector = rt.Intersector(rt.tags.triangle_data, rt.tags.stats, backend="cpu")
+    rays = rt.Ray(origin, direction)
+    results = []
+    for count in ("1", "3"):
+        monkeypatch.setenv("JAXRT_CPU_THREADS", count)
+        assert cpu.threads() == int(count)
+        results.append(intersector.intersect(rays, structure))
+    one, several = results
+    assert (np.asarray(one.type) != 0).any() and (np.asarray(one.type) == 0).any()
+    for name in FIELDS + STATS:
+        np.testing.assert_array_equal(np.asarray(several[name]), np.asarray(one[name]), err_msg=name)
+
+
+def test_scene_read_in_place_equals_the_scene_passed_through_the_callback():
+    """At top level the traversal reads the structure's and the rays' buffers in place; under ``jit`` (a trace)
+    it receives them through the callback. Both give the same result, disabled rays included."""
+    v, f, origin, direction = _mesh_and_rays(300, seed=2)
+    structure = rt.build_primitive_structure(rt.TriangleGeometry(v, f))
+    origin[::7] = np.nan  # disabled rays: their own values are in the buffers read in place
+    rays = rt.Ray(origin, direction, 0.0, np.where(np.arange(300) % 5 == 0, 1.5, np.inf).astype(np.float32))
+    assert cpu.host_scene(structure, rays).shape == (8, 2)
+    assert cpu.host_scene(structure, rays, with_rays=False).shape == (4, 2)
+    intersector = rt.Intersector(rt.tags.triangle_data, rt.tags.stats, backend="cpu")
+    in_place = intersector.intersect(rays, structure)
+    passed = jax.jit(intersector.intersect)(rays, structure)
+    assert (np.asarray(in_place.type) != 0).any() and (np.asarray(in_place.nodes_visited)[::7] == 0).all()
+    for name in FIELDS + STATS:
+        np.testing.assert_array_equal(np.asarray(in_place[name]), np.asarray(passed[name]), err_msg=name)
+    instanced = rt.build_instance_structure([structure], rt.Instances([0], np.eye(3, 4, dtype=np.float32)[None]))
+    assert cpu.host_scene(instanced, rays) is None
+
+
+def test_buffers_read_in_place_are_held_while_the_call_runs():
+    """A structure dropped by the caller right after ``intersect`` returns (the call runs asynchronously) is
+    still read correctly: the program keeps every buffer the traversal reads in place."""
+    v, f, origin, direction = _mesh_and_rays(256, seed=4)
+    rays = rt.Ray(origin, direction)
+    build = lambda: rt.build_primitive_structure(rt.TriangleGeometry(v, f))  # noqa: E731
+    expected = np.asarray(rt.Intersector(backend="portable").intersect(rays, build()).primitive_id)
+    assert (expected >= 0).any()
+    intersector = rt.Intersector(backend="cpu")
+    for _ in range(3):
+        results = [intersector.intersect(rays, build()).primitive_id for _ in range(6)]
+        clutter = [jnp.full((1 << 16,), -1.0) + i for i in range(8)]  # reuses freed memory, if any was freed
+        for result in results:
+            np.testing.assert_array_equal(np.asarray(result), expected)
+        del clutter
+
+
 # --- backend choice ---------------------------------------------------------------------------------------------
 
 

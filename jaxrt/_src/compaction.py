@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrt._src.instances import InstanceAccelerationStructure
-from jaxrt._src.structures import PrimitiveAccelerationStructure
+from jaxrt._src.structures import PrimitiveAccelerationStructure, with_kernel_layout
 
 __all__ = ["compact", "compact_capacity"]
 
@@ -113,7 +113,7 @@ def _compact_primitive(structure: PrimitiveAccelerationStructure) -> PrimitiveAc
         pad = capacity - 1
         node_children = node_children.at[0, 1].set(-1 - pad)
         node_range = node_range.at[0].set(jnp.asarray([0, pad], node_range.dtype))
-    return dataclasses.replace(
+    compacted = dataclasses.replace(
         structure,
         node_lower=structure.node_lower[:nodes],
         node_upper=structure.node_upper[:nodes],
@@ -132,6 +132,8 @@ def _compact_primitive(structure: PrimitiveAccelerationStructure) -> PrimitiveAc
         motion_node_lower=_trim_keys(structure.motion_node_lower, nodes),
         motion_node_upper=_trim_keys(structure.motion_node_upper, nodes),
     )
+    # The kernel's packed rows, where the structure has them, packed again (the root's row may have changed).
+    return with_kernel_layout(compacted, structure.kernel_layout is not None)
 
 
 def compact(

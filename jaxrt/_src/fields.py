@@ -11,6 +11,7 @@ holding the hit fixed. A scene without instances compiles none of the transform 
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import jax
@@ -73,6 +74,25 @@ class _Chain:
             origin = jnp.sum(m[..., :3] * origin[:, None, :], axis=-1) + m[..., 3]
             direction = jnp.sum(m[..., :3] * direction[:, None, :], axis=-1)
         self.origin, self.direction = origin, direction
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _with_smooth_tangent(which: int, exact, origin, direction, vertices):
+    """``exact`` (the traversal's value), differentiated as output ``which`` (distance, u, v) of the smooth
+    re-intersection :func:`~jaxrt._src.primitives.triangle.smooth_hit` of the rays with the triangles.
+
+    The smooth formula runs only where a derivative is taken: a plain call reads no vertices for it.
+    """
+    return exact
+
+
+@_with_smooth_tangent.defjvp
+def _with_smooth_tangent_jvp(which, primals, tangents):
+    exact, origin, direction, vertices = primals
+    _, d_origin, d_direction, d_vertices = tangents
+    smooth = jax.vmap(triangle.smooth_hit)
+    _, tangent = jax.jvp(smooth, (origin, direction, vertices), (d_origin, d_direction, d_vertices))
+    return exact, tangent[which]
 
 
 def _pad_levels(values: jax.Array, n: int, fill) -> jax.Array:
@@ -197,22 +217,24 @@ def hit_fields(
     # overflow, and its zero cotangent times inf would be a NaN gradient.
     smooth_origin = jnp.where(hit[:, None], origin, 0.0)
     smooth_direction = jnp.where(hit[:, None], direction, unit_z)
-    smooth_t, smooth_u, smooth_v = jax.vmap(triangle.smooth_hit)(smooth_origin, smooth_direction, world_vertices)
 
-    def attach(exact, smooth):
-        return jnp.where(hit, detached(exact) + (smooth - detached(smooth)), 0.0)
+    def attach(exact, which):
+        value = _with_smooth_tangent(which, detached(exact), smooth_origin, smooth_direction, world_vertices)
+        return jnp.where(hit, value, 0.0)
 
+    # A primitive structure of one geometry: every real leaf is geometry 0 (no gather per ray).
+    one_geometry = view.levels == 0 and len(view.geometry_info) == 1
     fields: dict[str, Any] = {
         "type": kind,
-        "distance": jnp.where(hit, attach(distance, smooth_t), exact_distance),
+        "distance": jnp.where(hit, attach(distance, 0), exact_distance),
         "primitive_id": jnp.where(found, leaves.primitive[leaf], -1),
-        "geometry_id": jnp.where(found, leaves.geometry[leaf], -1),
+        "geometry_id": jnp.where(found, jnp.int32(0) if one_geometry else leaves.geometry[leaf], jnp.int32(-1)),
     }
     if intersector.has("triangle_data"):
         triangle_direction = jnp.where(hit[:, None], detached(object_direction), unit_z)
         sheared = jax.vmap(triangle.shear_ray)(detached(object_origin), triangle_direction)
         u, v, clockwise = jax.vmap(triangle.barycentrics)(sheared, detached(vertices))
-        fields["triangle_barycentric_coord"] = jnp.stack([attach(u, smooth_u), attach(v, smooth_v)], axis=-1)
+        fields["triangle_barycentric_coord"] = jnp.stack([attach(u, 1), attach(v, 2)], axis=-1)
         if transforms is not None:
             flips = jnp.prod(jnp.where(transforms.valid, view.instances.flip[transforms.g], 1), axis=1)
             clockwise = clockwise ^ (flips < 0)

@@ -167,8 +167,9 @@ def _trace_portable(intersector: Any, view: SceneView, rays: SanitizedRays) -> T
     return _chunked(fn, args, chunk)
 
 
-def trace(intersector: Any, view: SceneView, rays: SanitizedRays) -> TraversalResult:
-    """Run the traversal the intersector and scene call for (a compiled one where it covers them)."""
+def trace(intersector: Any, view: SceneView, rays: SanitizedRays, host: Any = None) -> TraversalResult:
+    """Run the traversal the intersector and scene call for (a compiled one where it covers them). ``host``:
+    the addresses the CPU traversal may read the scene from (:func:`jaxrt._src.traversal.cpu.host_scene`)."""
     backend = resolve_backend(intersector)
     covered = kernel_declines(intersector, view.geometry_info, backend, view.layout.motion) is None
     if backend == "cpu":  # the CPU loop is compiled per float type: geometry and rays must share one
@@ -192,17 +193,18 @@ def trace(intersector: Any, view: SceneView, rays: SanitizedRays) -> TraversalRe
             any_hit=intersector.accept_any_intersection,
             cull=intersector.cull,
             **moving,
+            **({"host": host} if backend == "cpu" else {}),
         )
     return _trace_portable(intersector, view, rays)
 
 
 @functools.partial(jax.jit, static_argnums=0)
 @full_precision
-def _intersect_jit(intersector: Any, rays: Ray, structure: Any) -> IntersectionResult:
+def _intersect_jit(intersector: Any, rays: Ray, structure: Any, host: Any = None) -> IntersectionResult:
     """The result for a flat, padded ray batch ``(n,)`` (inside ``jit``)."""
     view = scene_view(structure)
     ray = SanitizedRays(rays)
-    found = trace(intersector, view, ray)
+    found = trace(intersector, view, ray, host)
     if intersector.counts_all:
         return IntersectionResult({"hit_count": found.hits.total})
     geometry = (ray.origin, ray.direction, ray.t_min, ray.t_max)
@@ -238,10 +240,10 @@ def _intersect_jit(intersector: Any, rays: Ray, structure: Any) -> IntersectionR
 
 
 @functools.partial(jax.jit, static_argnums=(0, 3))
-def _intersect_chunks(intersector: Any, rays: Ray, structure: Any, chunk: int) -> IntersectionResult:
+def _intersect_chunks(intersector: Any, rays: Ray, structure: Any, chunk: int, host: Any = None) -> IntersectionResult:
     """``_intersect_jit`` over sequential chunks of ``chunk`` rays (the ray count is a multiple of it)."""
     split = jax.tree_util.tree_map(lambda a: a.reshape(-1, chunk, *a.shape[1:]), rays)
-    out = lax.map(lambda r: _intersect_jit(intersector, r, structure), split)
+    out = lax.map(lambda r: _intersect_jit(intersector, r, structure, host), split)
     return jax.tree_util.tree_map(lambda a: a.reshape(-1, *a.shape[2:]), out)
 
 
@@ -256,8 +258,15 @@ def intersect(intersector: Any, rays: Ray, structure: Any) -> IntersectionResult
         flat = jax.tree_util.tree_map(
             lambda a: jnp.concatenate([a, jnp.zeros((padded - n, *a.shape[1:]), a.dtype)]), flat
         )
+    host = None
+    if resolve_backend(intersector) == "cpu":  # the CPU traversal reads a concrete scene in place
+        from jaxrt._src.traversal import cpu
+
+        host = cpu.host_scene(structure, flat, with_rays=padded <= chunk)
     if padded <= chunk:
-        result = _intersect_jit(intersector, flat, structure)
+        result = _intersect_jit(intersector, flat, structure, host)
     else:
-        result = _intersect_chunks(intersector, flat, structure, chunk)
+        result = _intersect_chunks(intersector, flat, structure, chunk, host)
+    if padded == n and shape == (n,):  # nothing to cut or reshape (no extra dispatch per field)
+        return result
     return jax.tree_util.tree_map(lambda a: a[:n].reshape(*shape, *a.shape[1:]), result)

@@ -274,6 +274,7 @@ def _primitive_traversal(structure: PrimitiveAccelerationStructure) -> tuple[Tra
         node_motion=None
         if structure.motion_node_lower is None
         else (structure.motion_node_lower, structure.motion_node_upper),
+        kernel_layout=structure.kernel_layout,
     )
     layout = TraversalLayout(
         root=0,

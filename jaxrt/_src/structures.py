@@ -37,6 +37,13 @@ array               shape, dtype    contents
 ``motion_node_upper``               its upper corners); blended at a ray's time they bound the subtree then
 ==================  ==============  ================================================================
 
+``kernel_layout`` (a :class:`~jaxrt._src.traversal.packed.KernelLayout`, or ``None``) holds the rows the GPU
+kernel reads, ``(C-1, 16)`` node rows and ``(C, 12)`` triangle rows in float32 (112 bytes per leaf slot, about
+as much again as the arrays above for a triangle structure): packed once where the structure is made, so that
+a trace does not repack them. Builds add it where the GPU kernel can run (default backend a GPU, Triton and
+jax-triton installed, float32 triangles without motion) or where ``kernel_layout=True`` asks; refit, compaction
+and loading keep it consistent with the arrays. Without it (CPU installs) the kernel packs the rows per call.
+
 With keyframe motion (static ``motion``, a :class:`~jaxrt.MotionSpec`) ``node_lower``/``node_upper`` bound
 each primitive over every keyframe (the union of its keyframe boxes; instance boxes and the SAH cost read
 them), ``motion_node_lower``/``motion_node_upper`` hold the node boxes of each keyframe, which the traversal
@@ -54,6 +61,7 @@ clustering tree hangs the padding leaves under the root in a subtree of their ow
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 from collections.abc import Sequence
 from typing import Any
 
@@ -72,8 +80,17 @@ from jaxrt._src.motion import MotionSpec, motion_bounds
 from jaxrt._src.numerics import full_precision
 from jaxrt._src.primitive_data import gather_leaf_data, primitive_data_layout
 from jaxrt._src.primitives import triangle
+from jaxrt._src.traversal.packed import KernelLayout
+from jaxrt._src.traversal.packed import kernel_layout as pack_kernel_layout
 
-__all__ = ["PrimitiveAccelerationStructure", "build_primitive_structure", "refit_primitives", "capacity_bucket"]
+__all__ = [
+    "PrimitiveAccelerationStructure",
+    "build_primitive_structure",
+    "refit_primitives",
+    "capacity_bucket",
+    "kernel_layout_wanted",
+    "with_kernel_layout",
+]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -114,6 +131,7 @@ class PrimitiveAccelerationStructure:
     motion_node_lower: jax.Array | None = None
     motion_node_upper: jax.Array | None = None
     motion: MotionSpec | None = dataclasses.field(default=None, metadata=dict(static=True))
+    kernel_layout: KernelLayout | None = None
 
     @property
     def keyframe_count(self) -> int:
@@ -139,6 +157,31 @@ class PrimitiveAccelerationStructure:
     def max_depth(self) -> int:
         """An upper bound on the depth of any leaf (:func:`~jaxrt._src.bvh.radix_tree.tree_depth_bound`)."""
         return tree_depth_bound(self.capacity)
+
+
+def kernel_layout_wanted(geometry_info: tuple[GeometryInfo, ...], dtype: Any) -> bool:
+    """Whether a structure of these geometries gets a packed :class:`KernelLayout` by default: the GPU kernel
+    can trace it here (a GPU backend with Triton and jax-triton installed; float32 triangles, no motion)."""
+    if jax.default_backend() != "gpu" or jnp.dtype(dtype) != jnp.float32:
+        return False
+    if any(g.kind != "triangle" or g.motion for g in geometry_info):
+        return False
+    return all(importlib.util.find_spec(name) is not None for name in ("triton", "jax_triton"))
+
+
+def with_kernel_layout(
+    structure: PrimitiveAccelerationStructure, wanted: bool | None = None
+) -> PrimitiveAccelerationStructure:
+    """``structure`` with its :class:`KernelLayout` packed from its arrays (``wanted`` true, or ``None`` and
+    :func:`kernel_layout_wanted`), or without one."""
+    if wanted is None:
+        wanted = kernel_layout_wanted(structure.geometry_info, structure.node_lower.dtype)
+    layout = None
+    if wanted:
+        layout = pack_kernel_layout(
+            structure.node_lower, structure.node_upper, structure.node_children, structure.leaf_triangle
+        )
+    return dataclasses.replace(structure, kernel_layout=layout)
 
 
 def capacity_bucket(count: int, capacity: int | None = None) -> int:
@@ -305,7 +348,11 @@ def _code_bounds(triangles, curves, boxes) -> tuple[jax.Array, jax.Array]:
 
 @full_precision
 def _build(
-    geometries: tuple[TriangleGeometry, ...], capacity: int, quality: str = "fast", motion: MotionSpec | None = None
+    geometries: tuple[TriangleGeometry, ...],
+    capacity: int,
+    quality: str = "fast",
+    motion: MotionSpec | None = None,
+    packed: bool = False,
 ) -> PrimitiveAccelerationStructure:
     count_keys = _keyframe_count(geometries, motion, "build_primitive_structure")
     frames = [_leaf_primitives(f, capacity) for f in _keyframes(geometries, count_keys)]
@@ -360,6 +407,7 @@ def _build(
         leaf_primitive_data=gather_leaf_data(geometries, capacity, order),
         **_motion_leaves(frames, order, motion),
         **motion_nodes,
+        kernel_layout=pack_kernel_layout(node_lower, node_upper, children, triangles[order]) if packed else None,
     )
 
 
@@ -387,7 +435,7 @@ def _motion_leaves(frames: list, order: jax.Array, motion: MotionSpec | None) ->
     )
 
 
-_build_jit = jax.jit(_build, static_argnums=(1, 2, 3))
+_build_jit = jax.jit(_build, static_argnums=(1, 2, 3, 4))
 #: Build qualities: the LBVH ("fast") and agglomerative clustering of its Morton order ("high").
 QUALITIES = ("fast", "high")
 
@@ -399,6 +447,7 @@ def build_primitive_structure(
     capacity: int | None = None,
     quality: str = "fast",
     checks: bool = False,
+    kernel_layout: bool | None = None,
 ) -> PrimitiveAccelerationStructure:
     """Build an LBVH over one or more geometries (jitted; also callable on traced arrays inside ``jax.jit``).
 
@@ -422,6 +471,9 @@ def build_primitive_structure(
         of range), which constructors check only when concrete: a :class:`~jaxrt._src.checks.BuildCheckError`
         (inside ``jit``, a ``jax.errors.JaxRuntimeError`` carrying its message) instead of silent misses.
         Costs a host synchronisation per build (:mod:`jaxrt._src.checks`).
+      kernel_layout: also store the GPU kernel's packed node and triangle rows (112 bytes per leaf slot), so
+        that traces on the GPU do not repack them per call. ``None`` (the default): where the GPU kernel can
+        trace the structure (a GPU backend with Triton and jax-triton; float32 triangles without motion).
 
     Returns:
       A :class:`PrimitiveAccelerationStructure`. Leaf vertices keep their gradient connection to the
@@ -443,7 +495,9 @@ def build_primitive_structure(
         for k, frame in enumerate(_keyframes(geometries, keys)):
             check_geometries(frame, "build_primitive_structure" + (f" (keyframe {k})" if keys > 1 else ""))
     total = sum(g.primitive_count for g in geometries)
-    return _build_jit(geometries, capacity_bucket(total, capacity), quality, motion)
+    if kernel_layout is None:
+        kernel_layout = kernel_layout_wanted(tuple(map(_geometry_info, geometries)), _float_dtype(geometries))
+    return _build_jit(geometries, capacity_bucket(total, capacity), quality, motion, bool(kernel_layout))
 
 
 @full_precision
@@ -456,11 +510,16 @@ def _refit(structure: PrimitiveAccelerationStructure, geometries: tuple[Triangle
     leaf_lower = jnp.where(padding[:, None], jnp.inf, lower[slot])
     leaf_upper = jnp.where(padding[:, None], -jnp.inf, upper[slot])
     node_lower, node_upper = _node_boxes(structure.node_children, structure.node_range, leaf_lower, leaf_upper)
+    leaf_triangle = jnp.where(padding[:, None, None], 0.0, triangles[slot])
+    layout = None
+    if structure.kernel_layout is not None:  # kept consistent with the refitted boxes and triangles
+        layout = pack_kernel_layout(node_lower, node_upper, structure.node_children, leaf_triangle)
     return dataclasses.replace(
         structure,
         node_lower=lax.stop_gradient(node_lower),
         node_upper=lax.stop_gradient(node_upper),
-        leaf_triangle=jnp.where(padding[:, None, None], 0.0, triangles[slot]),
+        kernel_layout=layout,
+        leaf_triangle=leaf_triangle,
         leaf_curve=None if curves is None else jnp.where(padding[:, None, None], 0.0, curves.segments[slot]),
         leaf_curve_flags=None if curves is None else jnp.where(padding, 0, curves.flags[slot]),
         leaf_box=None

@@ -36,7 +36,7 @@ import numpy as np
 
 from jaxrt._src.curves import CurveBasis, CurveEndCaps, CurveInfo, CurveType
 from jaxrt._src.instances import InstanceAccelerationStructure, InstanceTable
-from jaxrt._src.structures import GeometryInfo, PrimitiveAccelerationStructure
+from jaxrt._src.structures import GeometryInfo, PrimitiveAccelerationStructure, with_kernel_layout
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "save", "load"]
 
@@ -461,11 +461,13 @@ def _primitive(spec: Any, i: int, arrays: dict, used: set, reader: _Reader) -> P
                 f"has {where} primitive data of shape {leaf.shape}; rows must equal the capacity {capacity}"
             )
     device = {k: jnp.asarray(v) for k, v in a.items()}
-    return PrimitiveAccelerationStructure(
+    structure = PrimitiveAccelerationStructure(
         **device,
         geometry_info=info,
         leaf_primitive_data=jax.tree_util.tree_map(jnp.asarray, data),
     )
+    # The GPU kernel's packed rows are not stored: packed here where a build would pack them.
+    return with_kernel_layout(structure)
 
 
 def _table(spec: Any, j: int, arrays: dict, used: set, reader: _Reader) -> InstanceTable:

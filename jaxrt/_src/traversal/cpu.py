@@ -23,6 +23,7 @@ Composition:
 
 from __future__ import annotations
 
+import ctypes
 import functools
 import os
 from concurrent.futures import ThreadPoolExecutor
@@ -37,17 +38,17 @@ from jaxrt._src import numerics
 from jaxrt._src.primitives import box
 from jaxrt._src.traversal.scene import TraversalLayout, TraversalResult, TraversalScene
 
-__all__ = ["constants", "trace_scene", "unavailable_reason"]
+__all__ = ["constants", "host_scene", "kernel_arguments", "trace_scene", "unavailable_reason"]
 
 #: Base ranks of the callback's arguments (scene arrays, then rays); leading axes beyond them are vmap axes.
 _SCENE_RANKS = (3, 3, 2, 3, 3, 1, 1, 1)
 _RAY_RANKS = (2, 2, 1, 1, 1, 1)
 #: Positions of the float arguments (scene geometry and rays).
 _FLOAT_ARGS = (0, 1, 3, 4, 8, 9, 10, 11)
-#: Tasks per thread (rays cost unevenly: small tasks keep every thread busy to the end).
-TASKS_PER_THREAD = 16
-#: Fewest rays per task worth a thread.
-MIN_TASK = 64
+#: Rays a thread claims at a time (rays cost unevenly: small claims keep every thread busy to the end).
+CHUNK = 32
+#: Fewest rays per thread worth starting one.
+MIN_TASK = 256
 
 
 def threads() -> int:
@@ -122,33 +123,97 @@ def _run(params: tuple, arrays: list[np.ndarray]) -> tuple[np.ndarray, ...]:
         np.empty(n, np.bool_),
     )
     consts, flags = constants(dtype), np.asarray(params, np.int64)
-    run = functools.partial(cpu_kernel.trace_rays, *arrays, consts, flags)
-    workers = threads()
-    tasks = min(n, workers * TASKS_PER_THREAD) if n >= workers * MIN_TASK else 1
-    bounds = [n * k // tasks for k in range(tasks + 1)]
-    if tasks <= 1:
-        run(0, n, *out)
-    else:  # the kernel releases the GIL: ranges run in parallel, small tasks balance uneven rays
-        list(_pool().map(lambda k: run(bounds[k], bounds[k + 1], *out), range(tasks)))
+    counter = np.zeros(1, np.int64)
+    run = functools.partial(cpu_kernel.trace_rays, *arrays, consts, flags, counter, CHUNK, n, *out)
+    workers = min(threads(), -(-n // MIN_TASK))
+    # The kernel releases the GIL; each thread claims chunks of rays from the shared counter until none is
+    # left, so uneven rays balance without a task per chunk. This thread is one of the workers.
+    helpers = [_pool().submit(run) for _ in range(workers - 1)]
+    run()
+    for helper in helpers:
+        helper.result()
     return out
 
 
-def _host(params: tuple, wide: bool, *args: np.ndarray) -> tuple[np.ndarray, ...]:
+def _host(params: tuple, wide: bool, hosted: tuple | None, *args: np.ndarray) -> tuple[np.ndarray, ...]:
     """The callback: ``args`` may carry leading vmap axes (size 1 where an argument is not batched).
 
     Float64 arrays travel both ways as pairs of uint32 words (``wide``): JAX converts a callback's float64
     arguments and results to float32 when the thread that runs it has ``jax_enable_x64`` off
-    (``jax.enable_x64`` is a per-thread setting).
+    (``jax.enable_x64`` is a per-thread setting). With ``hosted`` (the shapes and dtypes of the node and
+    triangle arrays), the first argument holds their addresses (:func:`host_scene`) in place of the arrays.
     """
+    if hosted is not None:
+        words = np.asarray(args[0]).reshape(-1, 2)[: len(hosted)].astype(np.uint64)
+        addresses = words[:, 0] | (words[:, 1] << np.uint64(32))
+        in_place = {i: _at(int(a), shape, dtype) for a, (i, shape, dtype) in zip(addresses, hosted, strict=True)}
+        rest = iter(args[2:])  # args[1]: one element of each, so that the program holds their buffers
+        args = tuple(in_place[i] if i in in_place else next(rest) for i in range(len(_SCENE_RANKS + _RAY_RANKS)))
     if wide:
         args = tuple(
-            np.ascontiguousarray(a).view(np.float64)[..., 0] if i in _FLOAT_ARGS else a for i, a in enumerate(args)
+            np.ascontiguousarray(a).view(np.float64)[..., 0]
+            if i in _FLOAT_ARGS and (hosted is None or all(i != h[0] for h in hosted))
+            else a
+            for i, a in enumerate(args)
         )
     out = _host_arrays(params, *args)
     distance = out[0]
     if wide:
         distance = distance.view(np.uint32).reshape(*distance.shape, 2)
     return (distance, *out[1:])
+
+
+def _at(address: int, shape: tuple[int, ...], dtype: str) -> np.ndarray:
+    """A read-only array over ``address`` (no copy)."""
+    size = int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
+    if size == 0:
+        return np.zeros(shape, dtype)
+    array = np.frombuffer((ctypes.c_char * size).from_address(address), dtype).reshape(shape)
+    array.flags.writeable = False
+    return array
+
+
+def host_scene(structure: Any, rays: Any, *, with_rays: bool = True) -> np.ndarray | None:
+    """The addresses of a primitive structure's node and triangle buffers, and of the flat rays' origin,
+    direction and interval where they have the scene's dtype and ``with_rays`` (the program traces them in one
+    piece, not in chunks) (``(4, 2)`` or ``(8, 2)`` uint32 words), for the
+    CPU traversal to read them in place instead of receiving copies through the callback; ``None`` where that
+    is not safe: inside a trace (under ``jit``, ``vmap`` or ``grad`` an address could outlive its buffer), for
+    instance structures (their node arrays are assembled inside the program), or for arrays that are not
+    single-device CPU buffers.
+
+    The addresses are valid while the program that is passed the structure runs: an executing program keeps
+    its argument buffers alive, and the traversal reads them only then.
+    """
+    from jaxrt._src.structures import PrimitiveAccelerationStructure
+
+    if type(structure) is not PrimitiveAccelerationStructure:
+        return None
+    leaves = jax.tree_util.tree_leaves((structure, rays))
+    if any(isinstance(x, jax.core.Tracer) for x in leaves):
+        return None
+    arrays = (structure.node_lower, structure.node_upper, structure.node_children, structure.leaf_triangle)
+    if structure.node_children.dtype != jnp.int32 or not all(isinstance(a, jax.Array) for a in arrays):
+        return None
+    # Every array on the default CPU device: the program runs there on these very buffers (no transfer).
+    devices = {d for x in leaves if isinstance(x, jax.Array) for d in x.devices()}
+    if devices != jnp.zeros(()).devices() or next(iter(devices)).platform != "cpu":
+        return None
+    if any(a.is_deleted() or a.size == 0 for a in arrays):
+        return None
+    # The rays too, where they are arrays of the scene's dtype: enabled rays are traced as given (the
+    # sanitised copy differs only in disabled rays, which the kernel skips).
+    ray_arrays = (rays.origin, rays.direction, rays.min_distance, rays.max_distance)
+    dtype = structure.node_lower.dtype
+    n = rays.origin.shape[0] if rays.origin.ndim == 2 else -1
+    shapes = ((n, 3), (n, 3), (n,), (n,))
+    if with_rays and all(
+        isinstance(a, jax.Array) and a.dtype == dtype and a.shape == s for a, s in zip(ray_arrays, shapes, strict=True)
+    ):
+        if not any(a.is_deleted() or a.size == 0 for a in ray_arrays):
+            arrays += ray_arrays
+    addresses = [a.unsafe_buffer_pointer() for a in arrays]
+    return np.array([[a & 0xFFFFFFFF, a >> 32] for a in addresses], np.uint32)
 
 
 def _host_arrays(params: tuple, *args: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -171,6 +236,43 @@ def _host_arrays(params: tuple, *args: np.ndarray) -> tuple[np.ndarray, ...]:
     return tuple(np.stack(parts).reshape(*batch, *parts[0].shape) for parts in zip(*results, strict=True))
 
 
+def _params(layout: TraversalLayout, any_hit: bool, cull: int) -> tuple[int, ...]:
+    """The kernel's integer parameters (static)."""
+    return (int(layout.root), int(layout.primitive_leaves), int(layout.levels), int(layout.stack_size), int(bool(any_hit)), int(cull))  # fmt: skip
+
+
+def _arguments(scene: TraversalScene, origin, direction, t_min, t_max, enabled, mask, floats) -> tuple:
+    """The callback's arguments in the kernel's order; ``floats`` converts the float ones."""
+    return (
+        floats(scene.node_lower),
+        floats(scene.node_upper),
+        scene.node_children.astype(jnp.int32),
+        floats(scene.leaf_triangle),
+        floats(scene.instance_world_to_object),
+        scene.instance_child_root.astype(jnp.int32),
+        scene.instance_facing.astype(jnp.int32),
+        scene.instance_mask.astype(jnp.uint32),
+        *(floats(a) for a in (origin, direction, t_min, t_max)),
+        enabled.astype(bool),
+        mask.astype(jnp.uint32),
+    )
+
+
+def kernel_arguments(structure: Any, rays: Any, intersector: Any) -> tuple[tuple[int, ...], list[np.ndarray]]:
+    """``(params, arrays)`` for calling the compiled traversal directly on host arrays (outside ``jit``), as the
+    intersector's callback would for ``rays`` (a :class:`jaxrt.Ray` of shape ``(N,)``): for benchmarks."""
+    from jaxrt._src.pipeline import SanitizedRays
+    from jaxrt._src.scene_view import scene_view
+
+    view = scene_view(structure)
+    ray = SanitizedRays(rays)
+    params = _params(view.layout, intersector.accept_any_intersection, intersector.cull)
+    args = _arguments(
+        view.traversal, ray.origin, ray.direction, ray.t_min, ray.t_max, ray.enabled, ray.mask, lambda a: a
+    )
+    return params, [np.ascontiguousarray(a) for a in args]
+
+
 def trace_scene(
     scene: TraversalScene,
     layout: TraversalLayout,
@@ -183,6 +285,7 @@ def trace_scene(
     *,
     any_hit: bool,
     cull: int,
+    host: Any = None,
 ) -> TraversalResult:
     """Trace rays through a scene of any instance depth with the compiled CPU traversal.
 
@@ -197,6 +300,9 @@ def trace_scene(
       any_hit: stop at the first accepted hit.
       cull: 0 culls nothing, +1 clockwise triangles, -1 counterclockwise ones; below instances the sense is
         multiplied by the chain's ``instance_facing``.
+      host: ``None``, or the addresses of ``scene``'s node and triangle arrays and maybe of the rays
+        (:func:`host_scene`): the arrays of a primitive structure and rays passed to the running program,
+        read in place (a disabled ray's own values are read, and skipped).
 
     Returns:
       The portable traversal's :class:`~jaxrt._src.traversal.scene.TraversalResult`.
@@ -205,23 +311,11 @@ def trace_scene(
     if origin.dtype != dtype:
         raise ValueError(f"traversal.cpu.trace_scene: rays are {origin.dtype} but the scene is {dtype}")
     levels = int(layout.levels)
-    params = (int(layout.root), int(layout.primitive_leaves), levels, int(layout.stack_size), int(bool(any_hit)), int(cull))  # fmt: skip
+    params = _params(layout, any_hit, cull)
     detached = lax.stop_gradient
     wide = jnp.dtype(dtype).itemsize == 8
     words = lambda a: lax.bitcast_convert_type(detached(a).astype(dtype), jnp.uint32) if wide else detached(a)  # noqa: E731
-    args = (
-        words(scene.node_lower),
-        words(scene.node_upper),
-        scene.node_children.astype(jnp.int32),
-        words(scene.leaf_triangle),
-        words(scene.instance_world_to_object),
-        scene.instance_child_root.astype(jnp.int32),
-        scene.instance_facing.astype(jnp.int32),
-        scene.instance_mask.astype(jnp.uint32),
-        *(words(a) for a in (origin, direction, t_min, t_max)),
-        enabled.astype(bool),
-        mask.astype(jnp.uint32),
-    )
+    args = _arguments(scene, origin, direction, t_min, t_max, enabled, mask, words)
     n = origin.shape[0]
     shapes = (
         jax.ShapeDtypeStruct((n, 2), jnp.uint32) if wide else jax.ShapeDtypeStruct((n,), dtype),
@@ -231,6 +325,21 @@ def trace_scene(
         jax.ShapeDtypeStruct((n,), jnp.int32),
         jax.ShapeDtypeStruct((n,), jnp.bool_),
     )
-    out = jax.pure_callback(functools.partial(_host, params, wide), shapes, *args, vmap_method="expand_dims")
+    hosted = None
+    if host is not None:  # arrays read in place (see host_scene): the scene's, and maybe the rays'
+        in_place = (0, 1, 2, 3) if host.shape[0] == 4 else (0, 1, 2, 3, 8, 9, 10, 11)
+        sources = (scene.node_lower, scene.node_upper, scene.node_children, scene.leaf_triangle, origin, direction, t_min, t_max)  # fmt: skip
+        hosted = tuple(
+            (i, tuple(a.shape), jnp.dtype(a.dtype).name)
+            for i, a in zip(in_place, sources[: len(in_place)], strict=True)
+        )
+        # One element of each array read in place goes along: the program then uses, and so holds, every such
+        # buffer until it finishes (jit does not pass a program the arguments it does not use).
+        anchors = jnp.concatenate(
+            [lax.bitcast_convert_type(detached(a).reshape(-1)[:1], jnp.uint8).reshape(-1) for a in sources]
+        )
+        args = (jnp.asarray(host, jnp.uint32), anchors, *(a for i, a in enumerate(args) if i not in in_place))
+    callback = functools.partial(_host, params, wide, hosted)
+    out = jax.pure_callback(callback, shapes, *args, vmap_method="expand_dims")
     distance = lax.bitcast_convert_type(out[0], dtype) if wide else out[0]
     return TraversalResult(distance, *out[1:])

@@ -25,9 +25,21 @@ from __future__ import annotations
 import numba
 import numpy as np
 from llvmlite import ir
+from numba import types
 from numba.extending import intrinsic
 
 __all__ = ["trace_rays"]
+
+#: Unsigned offsets: rows are read from flat views at unsigned indices (no negative-index wraparound code).
+_U1 = np.uint64(1)
+_U2 = np.uint64(2)
+_U3 = np.uint64(3)
+_U4 = np.uint64(4)
+_U5 = np.uint64(5)
+_U6 = np.uint64(6)
+_U7 = np.uint64(7)
+_U8 = np.uint64(8)
+_U9 = np.uint64(9)
 
 
 @intrinsic
@@ -60,6 +72,18 @@ def _rounded_product(typingctx, a, b):
         out = builder.bitcast(rounded, ty)
         is_nan = builder.fcmp_unordered("uno", product, product)
         return builder.select(is_nan, product, out)
+
+    return sig, codegen
+
+
+@intrinsic
+def _fetch_add(typingctx, counter, amount):
+    """``counter[0] += amount`` as one atomic step; returns the value before."""
+    sig = types.int64(counter, types.int64)
+
+    def codegen(context, builder, signature, args):
+        array = context.make_array(signature.args[0])(context, builder, args[0])
+        return builder.atomic_rmw("add", array.data, args[1], "monotonic")
 
     return sig, codegen
 
@@ -173,11 +197,12 @@ def _row(m0, m1, m2, x0, x1, x2):
 @numba.njit(nogil=True, cache=True)
 def trace_rays(
     node_lower, node_upper, node_children, leaf_triangle, world_to_object, child_root, instance_facing,
-    instance_mask, origin, direction, t_min_all, t_max_all, enabled, mask_all, consts, params, begin, end, out_distance,
+    instance_mask, origin, direction, t_min_all, t_max_all, enabled, mask_all, consts, params, counter, chunk, end, out_distance,
     out_leaf, out_chain, out_visited, out_tested, out_overflow,
 ):  # fmt: skip
-    """Trace rays ``begin`` to ``end``; results go to the ``out_*`` arrays (without the GIL: the caller runs
-    disjoint ranges on several threads).
+    """Trace rays ``0`` to ``end``; results go to the ``out_*`` arrays. Runs without the GIL: every thread that
+    calls it with the same ``counter`` (``int64[1]``, starting at 0) claims the next ``chunk`` rays until all are
+    claimed.
 
     ``params`` holds ``root, primitive_leaves, levels, stack_size, any_hit, cull``; ``consts`` the float
     constants in the geometry's dtype (:func:`jaxrt._src.traversal.cpu.constants`).
@@ -192,150 +217,157 @@ def trace_rays(
     one, inf, clamp, huge, clamped_huge = consts[0], consts[2], consts[3], consts[4], consts[5]
     far_scale, parallel = consts[6], consts[7]
     instances = child_root.shape[0]
-    for i in range(begin, end):
-        if not enabled[i]:
-            out_distance[i] = -inf
-            out_leaf[i] = -1
+    # Flat views: node ``k`` has its two child boxes at ``6k`` (lower and upper), its children at ``2k``.
+    lf, hf, cf, tf = node_lower.reshape(-1), node_upper.reshape(-1), node_children.reshape(-1), leaf_triangle.reshape(-1)  # fmt: skip
+    while True:  # claim ranges of ``chunk`` rays until none is left (threads finish together)
+        begin = _fetch_add(counter, chunk)
+        if begin >= end:
+            break
+        for i in range(begin, min(begin + chunk, end)):
+            if not enabled[i]:
+                out_distance[i] = -inf
+                out_leaf[i] = -1
+                for j in range(levels):
+                    out_chain[i, j] = -1
+                out_visited[i] = 0
+                out_tested[i] = 0
+                out_overflow[i] = False
+                continue
+            t_min = t_min_all[i]
+            distance = t_max_all[i]
+            ray_mask = mask_all[i]
+            leaf = -1
+            o0, o1, o2 = origin[i, 0], origin[i, 1], origin[i, 2]
+            i0, i1, i2, kx, ky, kz, sx, sy, sz = _load(o0, o1, o2, direction[i, 0], direction[i, 1], direction[i, 2], one, clamp, huge, clamped_huge)  # fmt: skip
+            facing = 1
+            node = root
+            depth = 0
+            level = 0
+            ray_level = 0
+            visited = 0
+            tested = 0
+            overflow = False
             for j in range(levels):
-                out_chain[i, j] = -1
-            out_visited[i] = 0
-            out_tested[i] = 0
-            out_overflow[i] = False
-            continue
-        t_min = t_min_all[i]
-        distance = t_max_all[i]
-        ray_mask = mask_all[i]
-        leaf = -1
-        o0, o1, o2 = origin[i, 0], origin[i, 1], origin[i, 2]
-        i0, i1, i2, kx, ky, kz, sx, sy, sz = _load(o0, o1, o2, direction[i, 0], direction[i, 1], direction[i, 2], one, clamp, huge, clamped_huge)  # fmt: skip
-        facing = 1
-        node = root
-        depth = 0
-        level = 0
-        ray_level = 0
-        visited = 0
-        tested = 0
-        overflow = False
-        for j in range(levels):
-            hit_chain[j] = -1
-        while True:
-            visited += 1
-            c0 = node_children[node, 0]
-            c1 = node_children[node, 1]
-            lo, hi = node_lower, node_upper
-            hit0, near0 = _box(lo[node, 0, 0], lo[node, 0, 1], lo[node, 0, 2], hi[node, 0, 0], hi[node, 0, 1], hi[node, 0, 2], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
-            hit1, near1 = _box(lo[node, 1, 0], lo[node, 1, 1], lo[node, 1, 2], hi[node, 1, 0], hi[node, 1, 1], hi[node, 1, 2], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
-            # Leaf children: primitives are tested now, instances are entered like inner children (when visible).
-            k0 = -1 - c0
-            k1 = -1 - c1
-            inner0 = hit0 and c0 >= 0
-            inner1 = hit1 and c1 >= 0
-            e0 = c0
-            e1 = c1
-            ok0 = False
-            ok1 = False
-            t0 = inf
-            t1 = inf
-            sense = cull * facing
-            if c0 < 0:
-                if k0 < primitive_leaves:
-                    if hit0:
-                        tested += 1
-                        t = leaf_triangle
-                        v = (t[k0, 0, 0], t[k0, 0, 1], t[k0, 0, 2], t[k0, 1, 0], t[k0, 1, 1], t[k0, 1, 2], t[k0, 2, 0], t[k0, 2, 1], t[k0, 2, 2])  # fmt: skip
-                        ok0, t0 = _triangle(v, o0, o1, o2, kx, ky, kz, sx, sy, sz, t_min, distance, sense, inf)  # fmt: skip
+                hit_chain[j] = -1
+            while True:
+                visited += 1
+                un = np.uint64(node)
+                c0 = cf[un * _U2]
+                c1 = cf[un * _U2 + _U1]
+                b = un * _U6
+                hit0, near0 = _box(lf[b], lf[b + _U1], lf[b + _U2], hf[b], hf[b + _U1], hf[b + _U2], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
+                hit1, near1 = _box(lf[b + _U3], lf[b + _U4], lf[b + _U5], hf[b + _U3], hf[b + _U4], hf[b + _U5], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
+                # Leaf children: primitives are tested now, instances are entered like inner children (when visible).
+                k0 = -1 - c0
+                k1 = -1 - c1
+                inner0 = hit0 and c0 >= 0
+                inner1 = hit1 and c1 >= 0
+                e0 = c0
+                e1 = c1
+                ok0 = False
+                ok1 = False
+                t0 = inf
+                t1 = inf
+                sense = cull * facing
+                if c0 < 0:
+                    if k0 < primitive_leaves:
+                        if hit0:
+                            tested += 1
+                            q = np.uint64(k0) * _U9
+                            v = (tf[q], tf[q + _U1], tf[q + _U2], tf[q + _U3], tf[q + _U4], tf[q + _U5], tf[q + _U6], tf[q + _U7], tf[q + _U8])  # fmt: skip
+                            ok0, t0 = _triangle(v, o0, o1, o2, kx, ky, kz, sx, sy, sz, t_min, distance, sense, inf)  # fmt: skip
+                    else:
+                        g = min(max(k0 - primitive_leaves, 0), instances - 1)
+                        e0 = -1 - g
+                        inner0 = hit0 and (instance_mask[g] & ray_mask) != 0
+                if c1 < 0:
+                    if k1 < primitive_leaves:
+                        if hit1:
+                            tested += 1
+                            q = np.uint64(k1) * _U9
+                            v = (tf[q], tf[q + _U1], tf[q + _U2], tf[q + _U3], tf[q + _U4], tf[q + _U5], tf[q + _U6], tf[q + _U7], tf[q + _U8])  # fmt: skip
+                            ok1, t1 = _triangle(v, o0, o1, o2, kx, ky, kz, sx, sy, sz, t_min, distance, sense, inf)  # fmt: skip
+                    else:
+                        g = min(max(k1 - primitive_leaves, 0), instances - 1)
+                        e1 = -1 - g
+                        inner1 = hit1 and (instance_mask[g] & ray_mask) != 0
+                if ok0 or ok1:
+                    if t1 < t0:
+                        best_t, best_leaf = t1, k1
+                    else:
+                        best_t, best_leaf = t0, k0
+                    # Strictly nearer than the current hit; the first hit may lie exactly at t_max (closed interval).
+                    if best_t < distance or (leaf < 0 and best_t <= distance):
+                        distance = best_t
+                        leaf = best_leaf
+                        for j in range(levels):
+                            hit_chain[j] = chain[j] if j < level else -1
+                finished = False
+                if inner0 and inner1:
+                    if near0 <= near1:
+                        near, far = e0, e1
+                    else:
+                        near, far = e1, e0
+                    if depth < stack_size:
+                        stack[depth] = far
+                        depth += 1
+                    else:
+                        overflow = True
+                    node = near
+                elif inner0:
+                    node = e0
+                elif inner1:
+                    node = e1
+                elif depth == 0:
+                    finished = True
                 else:
-                    g = min(max(k0 - primitive_leaves, 0), instances - 1)
-                    e0 = -1 - g
-                    inner0 = hit0 and (instance_mask[g] & ray_mask) != 0
-            if c1 < 0:
-                if k1 < primitive_leaves:
-                    if hit1:
-                        tested += 1
-                        t = leaf_triangle
-                        v = (t[k1, 0, 0], t[k1, 0, 1], t[k1, 0, 2], t[k1, 1, 0], t[k1, 1, 1], t[k1, 1, 2], t[k1, 2, 0], t[k1, 2, 1], t[k1, 2, 2])  # fmt: skip
-                        ok1, t1 = _triangle(v, o0, o1, o2, kx, ky, kz, sx, sy, sz, t_min, distance, sense, inf)  # fmt: skip
-                else:
-                    g = min(max(k1 - primitive_leaves, 0), instances - 1)
-                    e1 = -1 - g
-                    inner1 = hit1 and (instance_mask[g] & ray_mask) != 0
-            if ok0 or ok1:
-                if t1 < t0:
-                    best_t, best_leaf = t1, k1
-                else:
-                    best_t, best_leaf = t0, k0
-                # Strictly nearer than the current hit; the first hit may lie exactly at t_max (closed interval).
-                if best_t < distance or (leaf < 0 and best_t <= distance):
-                    distance = best_t
-                    leaf = best_leaf
-                    for j in range(levels):
-                        hit_chain[j] = chain[j] if j < level else -1
-            finished = False
-            if inner0 and inner1:
-                if near0 <= near1:
-                    near, far = e0, e1
-                else:
-                    near, far = e1, e0
-                if depth < stack_size:
-                    stack[depth] = far
-                    depth += 1
-                else:
-                    overflow = True
-                node = near
-            elif inner0:
-                node = e0
-            elif inner1:
-                node = e1
-            elif depth == 0:
-                finished = True
-            else:
-                depth -= 1
-                node = stack[depth]
-                # The level of a popped entry: the deepest entered level whose stack base is at or below it.
-                top = 0
-                for j in range(level):
-                    if base[j] <= depth:
-                        top += 1
-                level = top
-            if finished or (any_hit and leaf >= 0):
-                break
-            if levels and (node < 0 or level != ray_level):
-                # Load the ray of the entry's level and enter the instance, if the entry is one.
-                if level == 0:
-                    b0, b1, b2 = origin[i, 0], origin[i, 1], origin[i, 2]
-                    d0, d1, d2 = direction[i, 0], direction[i, 1], direction[i, 2]
-                    base_facing = 1
-                else:
-                    b0, b1, b2 = level_ray[level - 1, 0], level_ray[level - 1, 1], level_ray[level - 1, 2]
-                    d0, d1, d2 = level_ray[level - 1, 3], level_ray[level - 1, 4], level_ray[level - 1, 5]
-                    base_facing = level_facing[level - 1]
-                facing = base_facing
-                if node < 0:
-                    g = min(max(-1 - node, 0), instances - 1)
-                    m = world_to_object
-                    # Row by row, as the portable transition sums them.
-                    n0 = _row(m[g, 0, 0], m[g, 0, 1], m[g, 0, 2], b0, b1, b2) + m[g, 0, 3]
-                    n1 = _row(m[g, 1, 0], m[g, 1, 1], m[g, 1, 2], b0, b1, b2) + m[g, 1, 3]
-                    n2 = _row(m[g, 2, 0], m[g, 2, 1], m[g, 2, 2], b0, b1, b2) + m[g, 2, 3]
-                    v0 = _row(m[g, 0, 0], m[g, 0, 1], m[g, 0, 2], d0, d1, d2)
-                    v1 = _row(m[g, 1, 0], m[g, 1, 1], m[g, 1, 2], d0, d1, d2)
-                    v2 = _row(m[g, 2, 0], m[g, 2, 1], m[g, 2, 2], d0, d1, d2)
-                    facing = base_facing * instance_facing[g]
-                    level_ray[level, 0], level_ray[level, 1], level_ray[level, 2] = n0, n1, n2
-                    level_ray[level, 3], level_ray[level, 4], level_ray[level, 5] = v0, v1, v2
-                    level_facing[level] = facing
-                    base[level] = depth
-                    chain[level] = g
-                    b0, b1, b2, d0, d1, d2 = n0, n1, n2, v0, v1, v2
-                    node = child_root[g]
-                    level += 1
-                ray_level = level
-                o0, o1, o2 = b0, b1, b2
-                i0, i1, i2, kx, ky, kz, sx, sy, sz = _load(b0, b1, b2, d0, d1, d2, one, clamp, huge, clamped_huge)
-        out_distance[i] = distance
-        out_leaf[i] = leaf
-        for j in range(levels):
-            out_chain[i, j] = hit_chain[j]
-        out_visited[i] = visited
-        out_tested[i] = tested
-        out_overflow[i] = overflow
+                    depth -= 1
+                    node = stack[depth]
+                    # The level of a popped entry: the deepest entered level whose stack base is at or below it.
+                    top = 0
+                    for j in range(level):
+                        if base[j] <= depth:
+                            top += 1
+                    level = top
+                if finished or (any_hit and leaf >= 0):
+                    break
+                if levels and (node < 0 or level != ray_level):
+                    # Load the ray of the entry's level and enter the instance, if the entry is one.
+                    if level == 0:
+                        b0, b1, b2 = origin[i, 0], origin[i, 1], origin[i, 2]
+                        d0, d1, d2 = direction[i, 0], direction[i, 1], direction[i, 2]
+                        base_facing = 1
+                    else:
+                        b0, b1, b2 = level_ray[level - 1, 0], level_ray[level - 1, 1], level_ray[level - 1, 2]
+                        d0, d1, d2 = level_ray[level - 1, 3], level_ray[level - 1, 4], level_ray[level - 1, 5]
+                        base_facing = level_facing[level - 1]
+                    facing = base_facing
+                    if node < 0:
+                        g = min(max(-1 - node, 0), instances - 1)
+                        m = world_to_object
+                        # Row by row, as the portable transition sums them.
+                        n0 = _row(m[g, 0, 0], m[g, 0, 1], m[g, 0, 2], b0, b1, b2) + m[g, 0, 3]
+                        n1 = _row(m[g, 1, 0], m[g, 1, 1], m[g, 1, 2], b0, b1, b2) + m[g, 1, 3]
+                        n2 = _row(m[g, 2, 0], m[g, 2, 1], m[g, 2, 2], b0, b1, b2) + m[g, 2, 3]
+                        v0 = _row(m[g, 0, 0], m[g, 0, 1], m[g, 0, 2], d0, d1, d2)
+                        v1 = _row(m[g, 1, 0], m[g, 1, 1], m[g, 1, 2], d0, d1, d2)
+                        v2 = _row(m[g, 2, 0], m[g, 2, 1], m[g, 2, 2], d0, d1, d2)
+                        facing = base_facing * instance_facing[g]
+                        level_ray[level, 0], level_ray[level, 1], level_ray[level, 2] = n0, n1, n2
+                        level_ray[level, 3], level_ray[level, 4], level_ray[level, 5] = v0, v1, v2
+                        level_facing[level] = facing
+                        base[level] = depth
+                        chain[level] = g
+                        b0, b1, b2, d0, d1, d2 = n0, n1, n2, v0, v1, v2
+                        node = child_root[g]
+                        level += 1
+                    ray_level = level
+                    o0, o1, o2 = b0, b1, b2
+                    i0, i1, i2, kx, ky, kz, sx, sy, sz = _load(b0, b1, b2, d0, d1, d2, one, clamp, huge, clamped_huge)
+            out_distance[i] = distance
+            out_leaf[i] = leaf
+            for j in range(levels):
+                out_chain[i, j] = hit_chain[j]
+            out_visited[i] = visited
+            out_tested[i] = tested
+            out_overflow[i] = overflow

@@ -82,6 +82,9 @@ COVERED_TAGS = frozenset(
 MAX_PROGRAMS = 1 << 15
 #: Leading arguments of the kernel call that come from the scene (the rest are per ray).
 SCENE_ARGS = 14
+#: Per-ray arguments after them (origin, direction, t_min, t_max, enabled, mask, time, root); a prepacked call
+#: appends the structure's node and triangle rows (:class:`~jaxrt._src.traversal.packed.KernelLayout`).
+RAY_ARGS = 8
 
 
 @dataclasses.dataclass(frozen=True)
@@ -137,6 +140,7 @@ class _Config:
     leaf_keys: int = 0  # keyframes of the leaf triangles (0: static triangles)
     instance_keys: int = 0  # keyframes of the instance transforms (0: no instance motion)
     leaf_spec: Any = None  # the MotionSpec of the node and leaf keyframes
+    prepacked: bool = False  # the node and triangle rows come with the arguments (packed at build time)
     max_hits: int = 0  # keep this many nearest hits per ray (0: the nearest hit only)
     count: bool = False  # count every accepted hit (no hit list)
 
@@ -299,25 +303,28 @@ def pack_nodes(options: KernelOptions, node_lower, node_upper, node_children, no
 
 
 def _kernel(*args, config: _Config) -> tuple[jax.Array, ...]:
-    """Pack the scene and the rays, launch the kernel, and drop the padding rays.
+    """Pack the scene (unless ``config.prepacked``) and the rays, launch the kernel, and drop the padding rays.
 
     Returns ``(distance, leaf, instances (n, levels), visited, tested, overflow)``, and with a hit list
     ``(hit distances (n, K), hit leaves (n, K), hits accepted (n,), hit chains (n, K, levels))`` after them.
     """
     (node_lower, node_upper, node_children, node_range, leaf_triangle, world_to_object, child_root, facing,
      instance_mask, node_keys_lower, node_keys_upper, leaf_keys, leaf_moving, instance_motion, origin, direction,
-     t_min, t_max, enabled, mask, time, root) = args  # fmt: skip
+     t_min, t_max, enabled, mask, time, root) = args[: SCENE_ARGS + RAY_ARGS]  # fmt: skip
     n = origin.shape[0]
     lanes = config.options.rays_per_program
     size = max(lanes, -(-n // lanes) * lanes)
-    if config.node_keys:
-        nodes = packed.pack_node_keys(node_keys_lower, node_keys_upper, node_children)
+    if config.prepacked:
+        nodes, triangles = args[SCENE_ARGS + RAY_ARGS :]
     else:
-        nodes = pack_nodes(config.options, node_lower, node_upper, node_children, node_range)
-    if config.leaf_keys:
-        triangles = packed.pack_triangle_keys(leaf_keys, leaf_moving)
-    else:
-        triangles = packed.pack_triangles(leaf_triangle)
+        if config.node_keys:
+            nodes = packed.pack_node_keys(node_keys_lower, node_keys_upper, node_children)
+        else:
+            nodes = pack_nodes(config.options, node_lower, node_upper, node_children, node_range)
+        if config.leaf_keys:
+            triangles = packed.pack_triangle_keys(leaf_keys, leaf_moving)
+        else:
+            triangles = packed.pack_triangles(leaf_triangle)
     instances = packed.pack_instances(world_to_object, child_root, facing, instance_mask)
     extended = config.levels > 0 or config.roots or config.motion
     motion = None
@@ -415,15 +422,18 @@ def _traversal(config: _Config):
     @call.def_vmap
     def rule(axis_size, in_batched, *args):
         outputs = 10 if config.hit_list else 6
-        if any(in_batched[:SCENE_ARGS]):
-            return _batched_scenes(config, _traversal, axis_size, in_batched, args), (True,) * outputs
-        scene, ray_args = args[:SCENE_ARGS], args[SCENE_ARGS:]
+        plain = SCENE_ARGS + RAY_ARGS  # past them: the prepacked rows, if any
+        if any(in_batched[:SCENE_ARGS]) or any(in_batched[plain:]):  # a batch of scenes: packed per call
+            unpacked = dataclasses.replace(config, prepacked=False)
+            out = _batched_scenes(unpacked, _traversal, axis_size, in_batched[:plain], args[:plain])
+            return out, (True,) * outputs
+        scene, ray_args, rows = args[:SCENE_ARGS], args[SCENE_ARGS:plain], args[plain:]
         rays = [
             a if b else jnp.broadcast_to(a, (axis_size, *a.shape))
-            for a, b in zip(ray_args, in_batched[SCENE_ARGS:], strict=True)
+            for a, b in zip(ray_args, in_batched[SCENE_ARGS:plain], strict=True)
         ]
         n = rays[0].shape[1]
-        out = call(*scene, *(a.reshape(axis_size * n, *a.shape[2:]) for a in rays))
+        out = call(*scene, *(a.reshape(axis_size * n, *a.shape[2:]) for a in rays), *rows)
         return tuple(a.reshape(axis_size, n, *a.shape[1:]) for a in out), (True,) * outputs
 
     return call
@@ -546,6 +556,8 @@ def trace_scene(
         options = dataclasses.replace(options, node_width=2)
     node_range = scene.node_range if options.node_width == 4 else jnp.zeros((1, 2), jnp.int32)
     _check_indices(scene.node_children.shape[0], scene.instance_child_root.shape[0], levels)
+    rows = getattr(scene, "kernel_layout", None)
+    prepacked = rows is not None and options.node_width == 2 and levels == 0 and layout.root == 0 and not moving
     config = _Config(
         any_hit=bool(any_hit),
         cull=int(cull),
@@ -554,6 +566,7 @@ def trace_scene(
         primitive_leaves=int(layout.primitive_leaves),
         options=options,
         roots=levels > 0 or layout.root != 0,
+        prepacked=prepacked,
         max_hits=k,
         count=bool(count_all),
     )
@@ -577,6 +590,7 @@ def trace_scene(
         mask.astype(jnp.uint32),
         detached(time).astype(jnp.float32),
         jnp.full(origin.shape[:1], layout.root, jnp.int32),
+        *((detached(rows.nodes), detached(rows.triangles)) if prepacked else ()),
     )
     distance, leaf, instances, visited, tested, overflow, *found = _traversal(config)(*args)
     hits = None

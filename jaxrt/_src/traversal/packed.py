@@ -1,8 +1,10 @@
 """Packed arrays read by the GPU traversal kernel, derived from a structure and a ray batch.
 
 The kernel reads one node with four 16-byte loads and one triangle with three, so the structure's arrays are
-repacked into rows of float32 quads (children bit-cast to float32). The packing is a cheap elementwise pass
-(about 110 bytes per primitive), done inside every traced call: structures stay the one source of truth.
+repacked into rows of float32 quads (children bit-cast to float32), 112 bytes per leaf slot. Structures built
+where the kernel runs hold these node and triangle rows (:class:`KernelLayout`, packed at build time and
+kept consistent by refit, compaction and loading); for other structures (and instanced scenes) the kernel
+call packs them per call. The ray block is packed in every call.
 
 Node row, ``(C-1, 16)`` float32, one per internal node (both child boxes in the parent, as in Aila & Laine,
 "Understanding the Efficiency of Ray Traversal on GPUs", HPG 2009):
@@ -62,6 +64,8 @@ Keyframe motion adds, where the scene has it:
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 from jax import lax
@@ -86,6 +90,8 @@ __all__ = [
     "pack_node_keys",
     "pack_triangle_keys",
     "pack_instance_motion",
+    "KernelLayout",
+    "kernel_layout",
 ]
 
 NODE_WIDTH = 16
@@ -313,3 +319,22 @@ def pack_rays(
     )
     columns = jnp.pad(columns, ((0, size - n), (0, 0)))
     return columns.T
+
+
+class KernelLayout(NamedTuple):
+    """The rows the binary kernel reads of a primitive structure, packed once where the structure is made
+    (``PrimitiveAccelerationStructure.kernel_layout``) instead of in every traced call."""
+
+    nodes: jax.Array  # (C-1, 16) float32: pack_nodes
+    triangles: jax.Array  # (C, 12) float32: pack_triangles
+
+
+def kernel_layout(
+    node_lower: jax.Array, node_upper: jax.Array, node_children: jax.Array, leaf_triangle: jax.Array
+) -> KernelLayout:
+    """:func:`pack_nodes` and :func:`pack_triangles` of a primitive structure's arrays (detached: the kernel
+    only picks the leaf)."""
+    return KernelLayout(
+        lax.stop_gradient(pack_nodes(node_lower, node_upper, node_children)),
+        lax.stop_gradient(pack_triangles(leaf_triangle)),
+    )

@@ -38,6 +38,7 @@ class TraversalScene(NamedTuple):
     node_range: jax.Array | None = None  # (M, 2) int32 leaf range per node (zero levels only; wide layouts)
     instance_motion: Any = None  # keyframed transforms (:class:`~jaxrt._src.instances.InstanceMotion`), or None
     node_motion: Any = None  # zero levels with primitive motion: (lower, upper) node boxes per keyframe (K, M, 2, 3)
+    kernel_layout: Any = None  # zero levels: the GPU kernel's rows packed at build time (KernelLayout), or None
 
 
 class TraversalLayout(NamedTuple):

@@ -1,0 +1,135 @@
+"""``python -m jaxrt.bench.cpu``: the CPU traversal against Embree, thread for thread, in one process.
+
+For each scene, ray set (primary, diffuse) and query (closest, any hit), three tracers take turns on the same
+rays, ``--repeats`` rounds, and the best round of each is kept (the machine may be shared: alternating and
+keeping the best round compares the tracers under the same load):
+
+- ``kernel``: the compiled traversal alone (:func:`jaxrt._src.traversal.cpu._run` on NumPy arrays: the leaf,
+  distance and counters, no JAX work around it);
+- ``intersect``: the whole ``Intersector.intersect`` call (ray sanitising, the host callback with its argument
+  copies, the result fields), synchronised;
+- ``embree``: Embree through embreex (its single-ray loop on one thread).
+
+jaxrt runs with each thread count of ``--threads`` (``JAXRT_CPU_THREADS``; default 1 and every core). The
+``per core / embree`` column divides the ``intersect`` rate by the thread count and by Embree's one-thread
+rate. Flags: ``--scenes``, ``--rays``, ``--repeats``, ``--threads``, ``--data-dir``, ``--json PATH``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import os
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import jax
+
+import jaxrt as rt
+from jaxrt.bench.peers import Embree, embree_unavailable_reason
+from jaxrt.bench.report import machine_info
+from jaxrt.bench.scenes import load_scene
+from jaxrt.bench.suite import RAY_KINDS
+
+__all__ = ["main", "measure_scene"]
+
+
+def _best(fn: Callable[[], Any], best: float) -> float:
+    start = time.perf_counter()
+    jax.block_until_ready(fn())
+    return min(best, time.perf_counter() - start)
+
+
+def _kernel_call(structure: Any, intersector: rt.Intersector, rays: rt.Ray) -> Callable[[], Any]:
+    """The compiled traversal alone on host arrays (the arguments the intersector's callback receives)."""
+    from jaxrt._src.traversal import cpu
+
+    params, arrays = cpu.kernel_arguments(structure, rays, intersector)
+    return lambda: cpu._run(params, arrays)
+
+
+def measure_scene(
+    name: str, n_rays: int, repeats: int, threads: Sequence[int], data_dir: str | None = None
+) -> list[dict[str, Any]]:
+    """Rows of Mrays/s (best of ``repeats`` alternating rounds) for one scene."""
+    scene = load_scene(name, data_dir=data_dir)
+    structure = rt.build_primitive_structure(rt.TriangleGeometry(scene.vertices, scene.indices))
+    embree = None
+    if embree_unavailable_reason() is None:
+        embree = Embree(scene.vertices, scene.indices)
+        embree.build()
+    rows = []
+    for kind in ("primary", "diffuse"):
+        batch = RAY_KINDS[kind](scene, n_rays, 0)
+        rays = batch.to_jaxrt()
+        for any_hit in (False, True):
+            intersector = rt.Intersector(accept_any_intersection=any_hit, backend="cpu")
+            kernel = _kernel_call(structure, intersector, rays)
+            calls: dict[str, Callable[[], Any]] = {}
+            for count in threads:
+                calls[f"kernel {count}t"] = kernel
+                calls[f"intersect {count}t"] = functools.partial(intersector.intersect, rays, structure)
+            if embree is not None:
+                calls["embree 1t"] = functools.partial(embree.any_hit if any_hit else embree.closest, batch)
+            best = dict.fromkeys(calls, float("inf"))
+            for round_ in range(repeats + 1):  # round 0 warms up (compiles)
+                for key, fn in calls.items():
+                    os.environ["JAXRT_CPU_THREADS"] = key.split()[-1][:-1]
+                    seconds = _best(fn, float("inf"))
+                    if round_:
+                        best[key] = min(best[key], seconds)
+            os.environ.pop("JAXRT_CPU_THREADS", None)
+            row = {"scene": name, "rays": kind, "query": "any" if any_hit else "closest"}
+            row.update({key: n_rays / s / 1e6 for key, s in best.items()})
+            rows.append(row)
+    return rows
+
+
+def _format(row: dict[str, Any], threads: Sequence[int]) -> str:
+    parts = [f"{row['scene']:7s} {row['rays']:8s} {row['query']:8s}"]
+    for count in threads:
+        parts.append(
+            f"kernel {count}t {row[f'kernel {count}t']:5.2f}  intersect {count}t {row[f'intersect {count}t']:5.2f}"
+        )
+    if "embree 1t" in row:
+        parts.append(f"embree 1t {row['embree 1t']:5.2f}")
+        parts.append(
+            "per core / embree "
+            + " ".join(f"{count}t {row[f'intersect {count}t'] / count / row['embree 1t']:.2f}" for count in threads)
+        )
+    return " | ".join(parts)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """The command line."""
+    parser = argparse.ArgumentParser(prog="python -m jaxrt.bench.cpu", description=__doc__.splitlines()[0])
+    parser.add_argument("--scenes", nargs="+", default=["sphere", "bunny", "dragon"])
+    parser.add_argument("--rays", type=int, default=1 << 16)
+    parser.add_argument("--repeats", type=int, default=5, help="alternating rounds; the best is kept (default 5)")
+    parser.add_argument("--threads", type=int, nargs="+", help="jaxrt thread counts (default: 1 and every core)")
+    parser.add_argument("--data-dir", help="shared mesh folder (default: $JAXRT_DATA_DIR or ../shared/data)")
+    parser.add_argument("--json", metavar="PATH", help="also write the rows and the machine info to PATH")
+    args = parser.parse_args(argv)
+    from jaxrt._src.traversal import cpu
+
+    if cpu.unavailable_reason() is not None:
+        raise SystemExit(f"python -m jaxrt.bench.cpu: {cpu.unavailable_reason()}")
+    os.environ.pop("JAXRT_CPU_THREADS", None)
+    threads = args.threads or sorted({1, cpu.threads()})
+    print(f"Mrays/s, {args.rays:,} rays, best of {args.repeats} alternating rounds; load average {os.getloadavg()}")
+    rows = []
+    for name in args.scenes:
+        for row in measure_scene(name, args.rays, args.repeats, threads, args.data_dir):
+            print(_format(row, threads), flush=True)
+            rows.append(row)
+    print(f"load average at the end {os.getloadavg()}")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump({"machine": machine_info(), "threads": list(threads), "rows": rows}, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
