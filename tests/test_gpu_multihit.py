@@ -270,7 +270,10 @@ def test_intersector_takes_the_kernel(k, kernel_here, monkeypatch):
     the hit-list constants) and every field equals the portable path's."""
     if not ON_GPU:
         monkeypatch.setattr(gpu, "unavailable_reason", lambda intersector: None)
-    structure = structure_of(layer_triangles(50))
+    # With the kernel rows packed at build time (the flat static case the intersector traces prepacked).
+    structure = rt.build_primitive_structure(
+        rt.TriangleGeometry(layer_triangles(50).reshape(-1, 3)), kernel_layout=True
+    )
     origin, direction, t_min, t_max, _, _ = layer_rays(64, seed=51, diagonal=k is None)
     ray = rt.Ray(origin, direction, t_min, t_max)
     calls = []
@@ -279,13 +282,13 @@ def test_intersector_takes_the_kernel(k, kernel_here, monkeypatch):
     if k is None:
         got = {"hit_count": rt.count_intersections(ray, structure, rt.Intersector(backend="gpu"))}
         want = {"hit_count": rt.count_intersections(ray, structure, rt.Intersector(backend="portable"))}
-        assert calls and calls[0].count and not calls[0].max_hits, calls
+        assert calls and calls[0].count and not calls[0].max_hits and calls[0].prepacked, calls
         assert np.asarray(want["hit_count"]).max() > LAYERS
     else:
         tags = (rt.tags.triangle_data, rt.tags.stats)
         got = rt.Intersector(*tags, max_hits=k, backend="gpu").intersect(ray, structure)
         want = rt.Intersector(*tags, max_hits=k, backend="portable").intersect(ray, structure)
-        assert calls and calls[0].max_hits == k and not calls[0].count, calls
+        assert calls and calls[0].max_hits == k and not calls[0].count and calls[0].prepacked, calls
         assert np.asarray(want.hit_overflow).sum() > 10
     if not ON_GPU:
         assert LAUNCHES, "the kernel did not run"
