@@ -357,7 +357,7 @@ def test_auto_picks_the_cpu_traversal_and_forced_backends_explain_themselves(mon
     with pytest.raises(ValueError, match="backend='cpu' cannot run: multi-hit"):
         rt.Intersector(backend="cpu", max_hits=2).intersect(rays, structure)
     # Declined cases under "auto" take the portable traversal (they are traced in test_multi_hit.py).
-    assert pipeline.kernel_declines(rt.Intersector(max_hits=2), structure.geometry_info) is not None
+    assert pipeline.kernel_declines(rt.Intersector(max_hits=2), structure.geometry_info, "cpu") is not None
     monkeypatch.setattr(jax, "default_backend", lambda: "tpu")
     with pytest.raises(ValueError, match="backend='cpu' cannot run: the default JAX backend is 'tpu'"):
         rt.Intersector(backend="cpu").intersect(rays, structure)

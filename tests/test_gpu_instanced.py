@@ -201,7 +201,7 @@ def interpreted_launch(call: gpu.KernelCall) -> tuple[jax.Array, ...]:
     from jaxrt._src.traversal import triton_kernel
 
     kernel = getattr(triton_kernel, call.kernel)
-    results = 6 if call.kernel == "trace_kernel" else 5
+    results = gpu.returned(call)
     rays = call.args[3] if call.kernel == "trace_kernel" else call.args[2]
 
     def host(*arrays):

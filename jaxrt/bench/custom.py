@@ -10,6 +10,7 @@ Two tables:
 2. *Filters.* One triangle mesh traced opaque without a filter, opaque with a filter (which opaque geometry
    never uses), non-opaque with a filter that accepts everything, and non-opaque with an alpha filter that
    rejects about half the triangles; also the 4 nearest hits (``max_hits=4``) and ``count_intersections``.
+   Each row names the traversal that ran (``path``: the GPU kernel, the CPU traversal or the portable one).
 
 Flags: ``--quick`` (tiny sizes, one repeat), ``--spheres``, ``--triangles``, ``--rays``, ``--repeats``,
 ``--json PATH``. Only jax and numpy are needed.
@@ -28,6 +29,8 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxrt as rt
+from jaxrt._src import pipeline
+from jaxrt._src.intersector import _CountingIntersector
 from jaxrt.bench.gradients import camera_rays, noisy_sphere
 from jaxrt.bench.report import machine_info
 from jaxrt.bench.timing import timed
@@ -148,6 +151,15 @@ def bench_spheres(count: int, n_rays: int, repeats: int, seed: int = 0) -> list[
     return rows
 
 
+def traversal_path(intersector: rt.Intersector, structure: Any) -> str:
+    """Which traversal ``intersector`` runs on ``structure`` on this machine: ``"gpu kernel"``,
+    ``"cpu traversal"`` or ``"portable"`` (the choice :func:`jaxrt._src.pipeline.trace` makes)."""
+    backend = pipeline.resolve_backend(intersector)
+    if backend == "portable" or pipeline.kernel_declines(intersector, structure.geometry_info, backend):
+        return "portable"
+    return "gpu kernel" if backend == "gpu" else "cpu traversal"
+
+
 def bench_filters(triangles: int, n_rays: int, repeats: int, seed: int = 0) -> list[dict[str, Any]]:
     """The cost of filters on opaque and non-opaque geometry, of multi-hit and of counting."""
     vertices, indices = noisy_sphere(triangles, seed)
@@ -173,10 +185,11 @@ def bench_filters(triangles: int, n_rays: int, repeats: int, seed: int = 0) -> l
     for name, intersector, s in cases:
         trace, distance = _trace(intersector, s, rays, repeats)
         hits = np.isfinite(distance if distance.ndim == 1 else distance[:, 0])
-        rows.append({"case": name, "trace": trace, "hits": int(hits.sum())})
+        rows.append({"case": name, "trace": trace, "hits": int(hits.sum()), "path": traversal_path(intersector, s)})
     count = jax.jit(rt.count_intersections)
     timing, counts = timed(lambda: count(rays, opaque), repeats)
-    rows.append({"case": "opaque, count_intersections", "trace": timing.as_dict(n), "hits": int(np.sum(counts > 0))})
+    rows.append({"case": "opaque, count_intersections", "trace": timing.as_dict(n), "hits": int(np.sum(counts > 0)),
+                 "path": traversal_path(_CountingIntersector(), opaque)})  # fmt: skip
     return rows
 
 
@@ -189,9 +202,9 @@ def format_tables(results: dict[str, Any]) -> str:
             f"| {r['geometry']} | {r['primitives']:,} | {r['build']['mprims_s']:.2f} | {r['trace']['mrays_s']:.3f} "
             f"| {r['hits']:,} | {r['hit_mismatches']} | {r['median_rel_error']:.1e} | {r['max_rel_error']:.1e} |"
         )
-    lines += ["", "| filter case | Mrays/s | hits |", "|---|---|---|"]
+    lines += ["", "| filter case | Mrays/s | hits | traversal |", "|---|---|---|---|"]
     for r in results["filters"]:
-        lines.append(f"| {r['case']} | {r['trace']['mrays_s']:.3f} | {r['hits']:,} |")
+        lines.append(f"| {r['case']} | {r['trace']['mrays_s']:.3f} | {r['hits']:,} | {r.get('path', '')} |")
     return "\n".join(lines)
 
 

@@ -9,7 +9,8 @@ The intersector picks this path (``backend="auto"`` or ``"gpu"``) when :func:`un
 ``None``: the default JAX backend is a GPU, Triton and jax-triton import (``pip install jaxrt[gpu]``), geometry
 is float32, and the intersector asks only for what the kernel covers (triangles, nearest and any hit, cull
 modes and windings, ray intervals, masks and disabled rays, several geometries per structure, instances over
-any number of levels, keyframe motion of triangles and instances at each ray's time, and the tags of
+any number of levels, keyframe motion of triangles and instances at each ray's time, the ``K`` nearest hits
+of ``max_hits`` with each hit's instance chain, counting every hit, and the tags of
 :data:`COVERED_TAGS`). Triton is imported only here and only when a trace is compiled, so CPU-only installs
 never import it.
 
@@ -49,6 +50,7 @@ from jaxrt._src.motion import KeyframePosition, spec_position
 from jaxrt._src.primitives import box
 from jaxrt._src.traversal import packed
 from jaxrt._src.traversal.scene import TraversalLayout, TraversalResult, TraversalScene
+from jaxrt._src.traversal.step import HitList
 
 __all__ = [
     "KernelOptions",
@@ -139,6 +141,12 @@ class _Config:
     instance_keys: int = 0  # keyframes of the instance transforms (0: no instance motion)
     leaf_spec: Any = None  # the MotionSpec of the node and leaf keyframes
     prepacked: bool = False  # the node and triangle rows come with the arguments (packed at build time)
+    max_hits: int = 0  # keep this many nearest hits per ray (0: the nearest hit only)
+    count: bool = False  # count every accepted hit (no hit list)
+
+    @property
+    def hit_list(self) -> bool:
+        return bool(self.max_hits or self.count)
 
     @property
     def motion(self) -> bool:
@@ -153,6 +161,7 @@ class KernelCall(NamedTuple):
     args: tuple  # the kernel's inputs, arrays and ints, in parameter order
     out_shape: tuple  # outputs (the results first, then scratch buffers that are never read back)
     params: dict  # compile-time constants
+    results: int = 0  # leading outputs read back (0: the traversal result, 6 or 5)
 
 
 @functools.lru_cache(maxsize=1)
@@ -245,15 +254,21 @@ def kernel_call(
         LEAF_KEYS=config.leaf_keys,
         IWIDTH=4 + 12 * config.instance_keys if config.instance_keys else 0,
     )
+    params.update(MAX_HITS=config.max_hits, COUNT=config.count)
+    k = config.max_hits
     extra = (
         jax.ShapeDtypeStruct((max(1, levels * size),), jnp.int32),  # instance chain, (levels, size)
+        jax.ShapeDtypeStruct((max(1, k * size),), jnp.float32),  # hit list distances, (K, size)
+        jax.ShapeDtypeStruct((max(1, k * size),), jnp.int32),  # hit list leaves, (K, size)
+        jax.ShapeDtypeStruct((size if config.hit_list else 1,), jnp.int32),  # hits accepted
+        jax.ShapeDtypeStruct((max(1, k * levels * size),), jnp.int32),  # hit list chains, (K, levels, size)
         jax.ShapeDtypeStruct((programs * config.stack * lanes,), jnp.int32),  # stack scratch
         jax.ShapeDtypeStruct((max(1, programs * (levels + 1) * 8 * lanes),), jnp.float32),  # per-level rays
     )
     if instance_motion is None:
         instance_motion = jnp.zeros((1,), jnp.float32)
     args = (nodes, triangles, instances, rays, size, programs, config.primitive_leaves, instance_motion)
-    return KernelCall("trace_kernel", programs, args, results + extra, params)
+    return KernelCall("trace_kernel", programs, args, results + extra, params, 10 if config.hit_list else 6)
 
 
 def _launch(call: KernelCall) -> tuple[jax.Array, ...]:
@@ -272,7 +287,12 @@ def _launch(call: KernelCall) -> tuple[jax.Array, ...]:
         enable_fp_fusion=False,
         **call.params,
     )
-    return tuple(out[:6] if call.kernel == "trace_kernel" else out[:5])
+    return tuple(out[: returned(call)])
+
+
+def returned(call: KernelCall) -> int:
+    """How many leading outputs of ``call`` are read back (the rest are scratch)."""
+    return call.results or (6 if call.kernel == "trace_kernel" else 5)
 
 
 def pack_nodes(options: KernelOptions, node_lower, node_upper, node_children, node_range) -> jax.Array:
@@ -285,7 +305,8 @@ def pack_nodes(options: KernelOptions, node_lower, node_upper, node_children, no
 def _kernel(*args, config: _Config) -> tuple[jax.Array, ...]:
     """Pack the scene (unless ``config.prepacked``) and the rays, launch the kernel, and drop the padding rays.
 
-    Returns ``(distance, leaf, instances (n, levels), visited, tested, overflow)``.
+    Returns ``(distance, leaf, instances (n, levels), visited, tested, overflow)``, and with a hit list
+    ``(hit distances (n, K), hit leaves (n, K), hits accepted (n,), hit chains (n, K, levels))`` after them.
     """
     (node_lower, node_upper, node_children, node_range, leaf_triangle, world_to_object, child_root, facing,
      instance_mask, node_keys_lower, node_keys_upper, leaf_keys, leaf_moving, instance_motion, origin, direction,
@@ -332,7 +353,12 @@ def _kernel(*args, config: _Config) -> tuple[jax.Array, ...]:
         chain = out[5][: config.levels * size].reshape(config.levels, size)[:, :n].T
     else:
         chain = jnp.zeros((n, config.levels), jnp.int32)
-    return distance, leaf, chain, visited, tested, overflow
+    if not config.hit_list:
+        return distance, leaf, chain, visited, tested, overflow
+    k, levels = config.max_hits, config.levels
+    hit_list = (out[6][: k * size].reshape(k, size)[:, :n].T, out[7][: k * size].reshape(k, size)[:, :n].T)
+    chains = out[9][: k * levels * size].reshape(k, levels, size)[:, :, :n].transpose(2, 0, 1)
+    return distance, leaf, chain, visited, tested, overflow, *hit_list, out[8][:n], chains
 
 
 def _concatenate_scenes(scene: list[jax.Array], root: jax.Array) -> tuple[list[jax.Array], jax.Array, int, int]:
@@ -369,14 +395,20 @@ def _batched_scenes(config: _Config, call_for, axis_size: int, in_batched, args)
     _check_indices(flat_scene[2].shape[0], axis_size * g, config.levels)
     options = dataclasses.replace(config.options, node_width=2)
     batched = dataclasses.replace(config, primitive_leaves=axis_size * p, options=options, roots=True)
-    distance, leaf, chain, visited, tested, overflow = call_for(batched)(*flat_scene, *flat_rays, flat_root)
+    distance, leaf, chain, visited, tested, overflow, *hit_list = call_for(batched)(*flat_scene, *flat_rays, flat_root)
     index = jnp.arange(axis_size, dtype=jnp.int32)[:, None]
     leaf = leaf.reshape(axis_size, n)
     leaf = jnp.where(leaf >= 0, leaf - index * p, leaf)
     chain = chain.reshape(axis_size, n, config.levels)
     chain = jnp.where(chain >= 0, chain - index[..., None] * g, chain)
-    per_scene = lambda a: a.reshape(axis_size, n)  # noqa: E731
-    return per_scene(distance), leaf, chain, per_scene(visited), per_scene(tested), per_scene(overflow)
+    per_scene = lambda a: a.reshape(axis_size, n, *a.shape[1:])  # noqa: E731
+    out = per_scene(distance), leaf, chain, per_scene(visited), per_scene(tested), per_scene(overflow)
+    if hit_list:
+        hit_distance, hit_leaf, total, chains = (per_scene(a) for a in hit_list)
+        hit_leaf = jnp.where(hit_leaf >= 0, hit_leaf - index[..., None] * p, hit_leaf)
+        chains = jnp.where(chains >= 0, chains - index[..., None, None] * g, chains)
+        out += (hit_distance, hit_leaf, total, chains)
+    return out
 
 
 @functools.cache
@@ -389,10 +421,12 @@ def _traversal(config: _Config):
 
     @call.def_vmap
     def rule(axis_size, in_batched, *args):
+        outputs = 10 if config.hit_list else 6
         plain = SCENE_ARGS + RAY_ARGS  # past them: the prepacked rows, if any
         if any(in_batched[:SCENE_ARGS]) or any(in_batched[plain:]):  # a batch of scenes: packed per call
             unpacked = dataclasses.replace(config, prepacked=False)
-            return _batched_scenes(unpacked, _traversal, axis_size, in_batched[:plain], args[:plain]), (True,) * 6
+            out = _batched_scenes(unpacked, _traversal, axis_size, in_batched[:plain], args[:plain])
+            return out, (True,) * outputs
         scene, ray_args, rows = args[:SCENE_ARGS], args[SCENE_ARGS:plain], args[plain:]
         rays = [
             a if b else jnp.broadcast_to(a, (axis_size, *a.shape))
@@ -400,7 +434,7 @@ def _traversal(config: _Config):
         ]
         n = rays[0].shape[1]
         out = call(*scene, *(a.reshape(axis_size * n, *a.shape[2:]) for a in rays), *rows)
-        return tuple(a.reshape(axis_size, n, *a.shape[1:]) for a in out), (True,) * 6
+        return tuple(a.reshape(axis_size, n, *a.shape[1:]) for a in out), (True,) * outputs
 
     return call
 
@@ -469,6 +503,8 @@ def trace_scene(
     options: KernelOptions | None = None,
     time: jax.Array | None = None,
     leaf_motion: LeafMotion | None = None,
+    max_hits: int | None = None,
+    count_all: bool = False,
 ) -> TraversalResult:
     """Trace rays through a scene of any instance depth with the GPU kernel.
 
@@ -488,15 +524,29 @@ def trace_scene(
       leaf_motion: the triangle keyframes of a scene with primitive motion (:func:`leaf_motion`); the node
         keyframes (``scene.node_motion``) and instance keyframes (``scene.instance_motion``) come with the
         scene.
+      max_hits: static ``K``: also keep the ``K`` nearest hits of each ray in ``hits`` (a
+        :class:`~jaxrt._src.traversal.step.HitList`, as the portable traversal's ``max_hits``, with each hit's
+        instance chain below instances; not with ``any_hit``). ``0`` with ``count_all``.
+      count_all: static; count every accepted hit in ``hits.total`` (no culling), at any instance depth.
 
     Returns:
       The portable traversal's :class:`~jaxrt._src.traversal.scene.TraversalResult`: the leaf (-1 on a miss),
       its distance (the initial bound on a miss), the instance chain ``(N, levels)`` (global ids, outermost
       first, -1 past it), nodes visited, primitives tested, and the stack overflow flag (never set: the stack
-      has the layout's bound).
+      has the layout's bound). With ``max_hits`` or ``count_all``, ``hits`` as in the portable traversal
+      (then ``leaf`` is the first hit and ``distance`` the culling bound).
     """
     options = options or DEFAULT_OPTIONS
     levels = int(layout.levels)
+    k = int(max_hits or 0)
+    hit_list = max_hits is not None or count_all
+    if hit_list and (any_hit or (count_all and k) or (not count_all and k < 1)):
+        raise ValueError(
+            "traversal.gpu.trace_scene: hit lists need max_hits >= 1 (0 with count_all) and no any_hit "
+            f"(got max_hits={max_hits}, count_all={count_all}, any_hit={any_hit})"
+        )
+    if hit_list:  # the 4-wide layout keeps no hit lists
+        options = dataclasses.replace(options, node_width=2)
     if layout.motion and time is None:
         raise ValueError("traversal.gpu.trace_scene: the scene has keyframe motion; pass each ray's time")
     moving = layout.motion and (
@@ -517,6 +567,8 @@ def trace_scene(
         options=options,
         roots=levels > 0 or layout.root != 0,
         prepacked=prepacked,
+        max_hits=k,
+        count=bool(count_all),
     )
     detached = lax.stop_gradient
     motion_args, config = _motion_arguments(scene, layout, leaf_motion, config)
@@ -540,8 +592,12 @@ def trace_scene(
         jnp.full(origin.shape[:1], layout.root, jnp.int32),
         *((detached(rows.nodes), detached(rows.triangles)) if prepacked else ()),
     )
-    distance, leaf, instances, visited, tested, overflow = _traversal(config)(*args)
-    return TraversalResult(distance, leaf, instances, visited, tested, overflow.astype(bool))
+    distance, leaf, instances, visited, tested, overflow, *found = _traversal(config)(*args)
+    hits = None
+    if hit_list:
+        distances, leaves, total, chains = found
+        hits = HitList(distances, leaves, total, chains if levels else None)
+    return TraversalResult(distance, leaf, instances, visited, tested, overflow.astype(bool), hits)
 
 
 def trace(

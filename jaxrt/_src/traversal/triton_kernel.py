@@ -48,6 +48,17 @@ the ray's time: the segment and weight computed as ``motion.keyframe_position`` 
 rounded division), the blend, and the adjugate over the determinant of ``instances.invert_transform``,
 operation for operation. Without contraction these are the portable path's floats wherever XLA evaluates the
 same operations in the same order.
+
+Hit lists (compile-time constants ``MAX_HITS`` and ``COUNT``; 0 and ``False`` generate none of this code): the
+portable ``step.HitList``. ``MAX_HITS = K`` keeps each ray's ``K`` nearest hits sorted in the output buffers
+themselves, laid out ``(K, n_rays)`` so that a warp's accesses to one entry fall in one 128-byte line, like the
+stack; an insertion reads the ``K`` distances to find its place (after equal ones) and moves the entries behind
+it back by one, only in lanes that hit, behind the same warp-uniform branch as the leaf test. Registers would
+need ``K`` separately named values per field and unrolled selects for every shift (Triton has no per-lane
+arrays), and the list must reach memory anyway; an insertion is rare next to a step, so the lines stay in L1.
+Both leaves of a step are tested against the bound before it and inserted leaf child 0 first; once more than
+``K`` hits are known the bound is the ``K``-th distance, which culls boxes and leaves as in the portable path.
+``COUNT`` counts every accepted hit and never lowers the bound.
 """
 
 from __future__ import annotations
@@ -336,6 +347,78 @@ def _keep_nearer(hit, t, index, distance, leaf):
     hit may lie exactly at ``t_max`` (closed interval)."""
     found = hit & ((t < distance) | ((leaf < 0) & (t <= distance)))
     return tl.where(found, t, distance), tl.where(found, index, leaf)
+
+
+@triton.jit
+def _start_hits(hd_ptr, hl_ptr, hc_ptr, n_rays, ray, MAX_HITS: tl.constexpr, LEVELS: tl.constexpr, LANES: tl.constexpr):
+    """An empty hit list for one ray per lane: every entry at distance ``inf``, leaf -1, chain -1."""
+    for j in tl.static_range(MAX_HITS):
+        tl.store(hd_ptr + j * n_rays + ray, tl.full((LANES,), float("inf"), tl.float32))
+        tl.store(hl_ptr + j * n_rays + ray, tl.full((LANES,), -1, tl.int32))
+        for index in tl.static_range(LEVELS):
+            tl.store(hc_ptr + (j * LEVELS + index) * n_rays + ray, tl.full((LANES,), -1, tl.int32))
+
+
+@triton.jit
+def _insert_hit(
+    hd_ptr,
+    hl_ptr,
+    hc_ptr,
+    n_rays,
+    ray,
+    ok,
+    t,
+    leaf,
+    level_base,
+    level,
+    MAX_HITS: tl.constexpr,
+    LEVELS: tl.constexpr,
+    LANES: tl.constexpr,
+):
+    """Insert a hit at distance ``t`` into the sorted list where ``ok`` (the portable ``step._insert``): after
+    every entry at a distance ``<= t``, the entries behind it moved back by one, the last one dropped. Below
+    instances (``LEVELS > 0``) the entry's chain is the current path (``level`` instances entered)."""
+    position = tl.zeros((LANES,), tl.int32)
+    for j in tl.static_range(MAX_HITS):
+        listed = tl.load(hd_ptr + j * n_rays + ray, mask=ok, other=float("inf"))
+        position = position + (listed <= t).to(tl.int32)
+    for j in tl.static_range(MAX_HITS - 1, 0, -1):
+        move = ok & (position < j)
+        d = tl.load(hd_ptr + (j - 1) * n_rays + ray, mask=move, other=0.0)
+        k = tl.load(hl_ptr + (j - 1) * n_rays + ray, mask=move, other=0)
+        tl.store(hd_ptr + j * n_rays + ray, d, mask=move)
+        tl.store(hl_ptr + j * n_rays + ray, k, mask=move)
+        for index in tl.static_range(LEVELS):
+            g = tl.load(hc_ptr + ((j - 1) * LEVELS + index) * n_rays + ray, mask=move, other=0)
+            tl.store(hc_ptr + (j * LEVELS + index) * n_rays + ray, g, mask=move)
+    put = ok & (position < MAX_HITS)
+    tl.store(hd_ptr + position * n_rays + ray, t, mask=put)
+    tl.store(hl_ptr + position * n_rays + ray, leaf, mask=put)
+    for index in tl.static_range(LEVELS):
+        on_path = put & (level > index)
+        g = tl.load(level_base + (index * 8 + 7) * LANES, mask=on_path, other=0.0).to(tl.int32, bitcast=True)
+        tl.store(hc_ptr + (position * LEVELS + index) * n_rays + ray, tl.where(on_path, g, -1), mask=put)
+
+
+@triton.jit
+def _hit_lists(
+    hd_ptr, hl_ptr, hc_ptr, n_rays, ray, votes, active, h0, t0, c0, h1, t1, c1, distance, total, level_base, level,
+    MAX_HITS: tl.constexpr, LEVELS: tl.constexpr, LANES: tl.constexpr, BRANCH: tl.constexpr,
+):  # fmt: skip
+    """One step of the ``K`` nearest hits: both leaves into the list (leaf child 0 first), then the bound, the
+    ``K``-th distance once more than ``K`` hits are known. Returns ``(distance, total)``."""
+    if BRANCH:
+        if (votes & 1) != 0:
+            _insert_hit(hd_ptr, hl_ptr, hc_ptr, n_rays, ray, h0, t0, -1 - c0, level_base, level, MAX_HITS, LEVELS, LANES)  # fmt: skip
+        if (votes & 2) != 0:
+            _insert_hit(hd_ptr, hl_ptr, hc_ptr, n_rays, ray, h1, t1, -1 - c1, level_base, level, MAX_HITS, LEVELS, LANES)  # fmt: skip
+    else:
+        _insert_hit(hd_ptr, hl_ptr, hc_ptr, n_rays, ray, h0, t0, -1 - c0, level_base, level, MAX_HITS, LEVELS, LANES)
+        _insert_hit(hd_ptr, hl_ptr, hc_ptr, n_rays, ray, h1, t1, -1 - c1, level_base, level, MAX_HITS, LEVELS, LANES)
+    total = total + h0.to(tl.int32) + h1.to(tl.int32)
+    full = active & (total > MAX_HITS)
+    kth = tl.load(hd_ptr + (MAX_HITS - 1) * n_rays + ray, mask=full, other=0.0)
+    return tl.where(full, kth, distance), total
 
 
 @triton.jit
@@ -645,6 +728,10 @@ def trace_kernel(
     tested_ptr,
     overflow_ptr,
     chain_ptr,
+    hit_distance_ptr,
+    hit_leaf_ptr,
+    hit_total_ptr,
+    hit_chain_ptr,
     stack_ptr,
     level_ptr,
     STACK: tl.constexpr,
@@ -664,6 +751,8 @@ def trace_kernel(
     NODE_KEYS: tl.constexpr,
     LEAF_KEYS: tl.constexpr,
     IWIDTH: tl.constexpr,
+    MAX_HITS: tl.constexpr = 0,
+    COUNT: tl.constexpr = False,
 ):
     """Trace ``n_rays`` rays (a multiple of ``LANES``); outputs as :class:`~jaxrt._src.traversal.scene.TraversalResult`.
 
@@ -678,6 +767,14 @@ def trace_kernel(
     node rows of that many keyframes, blended at the ray's keyframe segment and weight (ray block rows 20-21);
     ``LEAF_KEYS > 0``, ``tris_ptr`` holds the triangle rows of that many keyframes (see :func:`_triangle`);
     ``IWIDTH > 0``, ``imotion_ptr`` holds instance motion rows of that width, read at the ray's time (row 23).
+
+    Hit lists (``MAX_HITS = 0`` and ``COUNT = False`` compile none of this): ``MAX_HITS = K > 0`` keeps the
+    ``K`` nearest hits of each ray, sorted, in ``hit_distance_ptr`` and ``hit_leaf_ptr`` (``(K, n_rays)``) and
+    the number of hits accepted in ``hit_total_ptr``, as the portable ``step.HitList``: both leaves of a step
+    are tested against the distance bound before it, then inserted (leaf child 0 first, each after the hits
+    at the same distance), and once more than ``K`` hits are known the bound is the ``K``-th distance; the
+    result's leaf is the first hit and its distance the bound. Below instances ``hit_chain_ptr``
+    (``(K, LEVELS, n_rays)``) receives each hit's instance chain. ``COUNT`` counts every accepted hit in ``hit_total_ptr`` and never lowers the bound (the leaf stays -1).
     """
     pid = tl.program_id(0)
     lane = tl.arange(0, LANES)
@@ -699,6 +796,10 @@ def trace_kernel(
         visited = tl.zeros((LANES,), tl.int32)
         tested = tl.zeros((LANES,), tl.int32)
         overflow = tl.zeros((LANES,), tl.int32)
+        if MAX_HITS > 0:
+            _start_hits(hit_distance_ptr, hit_leaf_ptr, hit_chain_ptr, n_rays, ray, MAX_HITS, LEVELS, LANES)
+        if MAX_HITS > 0 or COUNT:
+            total = tl.zeros((LANES,), tl.int32)
         if LEAF_KEYS > 0:
             key_index = tl.load(rays_ptr + 20 * n_rays + ray).to(tl.int32, bitcast=True)
             key_weight = tl.load(rays_ptr + 21 * n_rays + ray)
@@ -781,8 +882,18 @@ def trace_kernel(
             near_first = near0 <= near1
             if LEVELS > 0:
                 found = (h0 | h1) & ((best_t < distance) | ((leaf < 0) & (best_t <= distance)))
-                distance = tl.where(found, best_t, distance)
-                leaf = tl.where(found, best_leaf, leaf)
+                if MAX_HITS > 0:
+                    distance, total = _hit_lists(
+                        hit_distance_ptr, hit_leaf_ptr, hit_chain_ptr, n_rays, ray, votes, active, h0, t0, c0, h1,
+                        t1, c1, distance, total, level_base, level, MAX_HITS, LEVELS, LANES, BRANCH,
+                    )  # fmt: skip
+                    # The first hit (the portable state's leaf, read by the next step's ``found``).
+                    leaf = tl.where(active, tl.load(hit_leaf_ptr + ray, mask=active, other=-1), leaf)
+                elif COUNT:
+                    total = total + h0.to(tl.int32) + h1.to(tl.int32)
+                else:
+                    distance = tl.where(found, best_t, distance)
+                    leaf = tl.where(found, best_leaf, leaf)
                 _record_chain(chain_ptr, level_base, n_rays, ray, found, level, LEVELS, LANES)
                 near = tl.where(near_first, entry0, entry1)
                 far = tl.where(near_first, entry1, entry0)
@@ -791,7 +902,15 @@ def trace_kernel(
                     leaf, done, STACK, ANY_HIT, LANES, SHIFT,
                 )  # fmt: skip
             else:
-                distance, leaf = _keep_nearer(h0 | h1, best_t, best_leaf, distance, leaf)
+                if MAX_HITS > 0:
+                    distance, total = _hit_lists(
+                        hit_distance_ptr, hit_leaf_ptr, hit_chain_ptr, n_rays, ray, votes, active, h0, t0, c0, h1,
+                        t1, c1, distance, total, stack_base, 0, MAX_HITS, LEVELS, LANES, BRANCH,
+                    )  # fmt: skip
+                elif COUNT:
+                    total = total + h0.to(tl.int32) + h1.to(tl.int32)
+                else:
+                    distance, leaf = _keep_nearer(h0 | h1, best_t, best_leaf, distance, leaf)
                 inner0 = hit0 & (c0 >= 0)
                 inner1 = hit1 & (c1 >= 0)
                 near = tl.where(near_first, c0, c1)
@@ -816,6 +935,10 @@ def trace_kernel(
                     oky = _select(ky, ox, oy, oz)
                     okz = _select(kz, ox, oy, oz)
 
+        if MAX_HITS > 0:
+            leaf = tl.load(hit_leaf_ptr + ray)
+        if MAX_HITS > 0 or COUNT:
+            tl.store(hit_total_ptr + ray, total)
         _store_result(distance_ptr, leaf_ptr, visited_ptr, tested_ptr, overflow_ptr, ray, distance, leaf, visited, tested, overflow)  # fmt: skip
         block += n_programs
 
