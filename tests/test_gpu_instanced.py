@@ -216,9 +216,9 @@ def interpreted_launch(call: gpu.KernelCall) -> tuple[jax.Array, ...]:
     return jax.pure_callback(host, tuple(call.out_shape[:results]), *arrays)
 
 
-@pytest.fixture
-def kernel_here(monkeypatch):
-    """The kernel launch on this machine: the GPU, or the interpreter (a few programs: the strided loop runs)."""
+def kernel_launches_here(monkeypatch):
+    """The kernel launch on this machine: the GPU, or the interpreter (a few programs: the strided loop runs);
+    fresh kernel caches and launch record. Modules register it as their ``kernel_here`` fixture."""
     if not ON_GPU:
         monkeypatch.setattr(gpu, "_launch", interpreted_launch)
         monkeypatch.setattr(gpu, "MAX_PROGRAMS", 2)
@@ -228,16 +228,25 @@ def kernel_here(monkeypatch):
     gpu._traversal.cache_clear()
 
 
-def test_kernel_in_interpreter():
-    """Runs this module's kernel tests in Triton's interpreter, in a fresh process."""
+kernel_here = pytest.fixture(kernel_launches_here, name="kernel_here")
+
+
+def run_kernel_tests_in_interpreter(test_file: str, select: str = "not interpreter") -> None:
+    """Runs the tests of ``test_file`` that ``-k select`` picks in Triton's interpreter, in a fresh process
+    (Triton decides when it is imported whether it interprets); skipped where they run directly."""
     pytest.importorskip("triton")
     if INTERPRETED or ON_GPU:
         pytest.skip("the kernel tests run directly here")
-    command = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-x", __file__, "-k", "not interpreter"]
+    command = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-x", test_file, "-k", select]
     env = dict(os.environ, TRITON_INTERPRET="1", JAX_PLATFORMS="cpu")
     done = subprocess.run(command, env=env, cwd=Path(__file__).parents[1], capture_output=True, text=True, timeout=900)
     assert done.returncode == 0, done.stdout[-4000:] + done.stderr[-2000:]
     assert " passed" in done.stdout and " skipped" not in done.stdout.splitlines()[-1], done.stdout[-2000:]
+
+
+def test_kernel_in_interpreter():
+    """Runs this module's kernel tests in Triton's interpreter, in a fresh process."""
+    run_kernel_tests_in_interpreter(__file__)
 
 
 kernel_test = pytest.mark.skipif(not (INTERPRETED or ON_GPU), reason="runs in the interpreter process or on a GPU")

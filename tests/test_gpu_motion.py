@@ -14,16 +14,19 @@ with both border modes at each end.
 from __future__ import annotations
 
 import functools
-import os
-import subprocess
-import sys
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_gpu_instanced import INTERPRETED, LAUNCHES, ON_GPU, _transforms, interpreted_launch
+from test_gpu_instanced import (
+    LAUNCHES,
+    ON_GPU,
+    _transforms,
+    kernel_launches_here,
+    kernel_test,
+    run_kernel_tests_in_interpreter,
+)
 
 import jaxrt as rt
 from jaxrt._src import leaves as leaf_tests
@@ -160,31 +163,12 @@ def _hits_per_time(got, times: list[float], n: int) -> np.ndarray:
 # --- running the kernel in Triton's interpreter -----------------------------------------------------------------
 
 
-@pytest.fixture
-def kernel_here(monkeypatch):
-    """The kernel launch on this machine: the GPU, or the interpreter (a few programs: the strided loop runs)."""
-    if not ON_GPU:
-        monkeypatch.setattr(gpu, "_launch", interpreted_launch)
-        monkeypatch.setattr(gpu, "MAX_PROGRAMS", 2)
-    gpu._traversal.cache_clear()
-    LAUNCHES.clear()
-    yield
-    gpu._traversal.cache_clear()
+kernel_here = pytest.fixture(kernel_launches_here, name="kernel_here")
 
 
 def test_kernel_in_interpreter():
     """Runs this module's kernel tests in Triton's interpreter, in a fresh process."""
-    pytest.importorskip("triton")
-    if INTERPRETED or ON_GPU:
-        pytest.skip("the kernel tests run directly here")
-    command = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-x", __file__, "-k", "not interpreter"]
-    env = dict(os.environ, TRITON_INTERPRET="1", JAX_PLATFORMS="cpu")
-    done = subprocess.run(command, env=env, cwd=Path(__file__).parents[1], capture_output=True, text=True, timeout=900)
-    assert done.returncode == 0, done.stdout[-4000:] + done.stderr[-2000:]
-    assert " passed" in done.stdout and " skipped" not in done.stdout.splitlines()[-1], done.stdout[-2000:]
-
-
-kernel_test = pytest.mark.skipif(not (INTERPRETED or ON_GPU), reason="runs in the interpreter process or on a GPU")
+    run_kernel_tests_in_interpreter(__file__)
 
 
 # --- the kernel's tests -------------------------------------------------------------------------------------------

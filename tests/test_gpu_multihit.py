@@ -16,17 +16,21 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import os
-import subprocess
-import sys
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from reference import brute_force
-from test_gpu_instanced import INTERPRETED, LAUNCHES, ON_GPU, interpreted_launch, scene_of_levels
+from test_gpu_instanced import (
+    INTERPRETED,
+    LAUNCHES,
+    ON_GPU,
+    kernel_launches_here,
+    kernel_test,
+    run_kernel_tests_in_interpreter,
+    scene_of_levels,
+)
 from test_gpu_instanced import rays as instanced_rays
 
 import jaxrt as rt
@@ -125,32 +129,13 @@ def assert_same(got, want) -> None:
 # --- running the kernel in Triton's interpreter -----------------------------------------------------------------
 
 
-@pytest.fixture
-def kernel_here(monkeypatch):
-    """The kernel launch on this machine: the GPU, or the interpreter (a few programs: the strided loop runs)."""
-    if not ON_GPU:
-        monkeypatch.setattr(gpu, "_launch", interpreted_launch)
-        monkeypatch.setattr(gpu, "MAX_PROGRAMS", 2)
-    gpu._traversal.cache_clear()
-    LAUNCHES.clear()
-    yield
-    gpu._traversal.cache_clear()
+kernel_here = pytest.fixture(kernel_launches_here, name="kernel_here")
 
 
 def test_kernel_in_interpreter():
     """Runs this module's kernel tests in Triton's interpreter, in a fresh process."""
-    pytest.importorskip("triton")
-    if INTERPRETED or ON_GPU:
-        pytest.skip("the kernel tests run directly here")
-    deselect = "not interpreter and not kernel_ir"  # the IR test compiles outside the interpreter
-    command = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-x", __file__, "-k", deselect]
-    env = dict(os.environ, TRITON_INTERPRET="1", JAX_PLATFORMS="cpu")
-    done = subprocess.run(command, env=env, cwd=Path(__file__).parents[1], capture_output=True, text=True, timeout=900)
-    assert done.returncode == 0, done.stdout[-4000:] + done.stderr[-2000:]
-    assert " passed" in done.stdout and " skipped" not in done.stdout.splitlines()[-1], done.stdout[-2000:]
-
-
-kernel_test = pytest.mark.skipif(not (INTERPRETED or ON_GPU), reason="runs in the interpreter process or on a GPU")
+    # The IR test compiles outside the interpreter.
+    run_kernel_tests_in_interpreter(__file__, "not interpreter and not kernel_ir")
 
 
 # --- the kernel's tests -------------------------------------------------------------------------------------------
