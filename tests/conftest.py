@@ -1,13 +1,15 @@
-"""Shared test configuration: a deterministic hypothesis profile, the test-helper import path, and the shared
-data folder."""
+"""Shared test configuration: a deterministic hypothesis profile, the test-helper import path, the shared
+data folder, and a guard that ends a run whose test hangs."""
 
 from __future__ import annotations
 
+import faulthandler
 import os
 import sys
 from pathlib import Path
 
 import hypothesis
+import pytest
 
 # Under ``--import-mode=importlib`` the tests folder is not on ``sys.path``; the float64 reference and the
 # tolerance table live in ``tests/reference.py`` and are imported by name.
@@ -39,3 +41,19 @@ hypothesis.settings.register_profile(
     suppress_health_check=[hypothesis.HealthCheck.too_slow, hypothesis.HealthCheck.data_too_large],
 )
 hypothesis.settings.load_profile(os.environ.get("JAXRT_HYPOTHESIS_PROFILE", "ci"))
+
+#: A test still running after this many seconds (the slowest take about a minute) prints every thread's stack
+#: and ends the run with a failure, instead of holding it until an outer time limit without saying where.
+HANG_SECONDS = float(os.environ.get("JAXRT_TEST_HANG_SECONDS", "900"))
+_stderr: list[int] = []  # a copy of the terminal's stderr, taken while pytest does not capture it
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    _stderr.append(os.dup(2))
+
+
+@pytest.fixture(autouse=True)
+def _end_the_run_on_a_hang():
+    faulthandler.dump_traceback_later(HANG_SECONDS, exit=True, file=_stderr[0] if _stderr else 2)
+    yield
+    faulthandler.cancel_dump_traceback_later()

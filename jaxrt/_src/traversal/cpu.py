@@ -212,6 +212,10 @@ def host_scene(structure: Any, rays: Any, *, with_rays: bool = True) -> np.ndarr
     ):
         if not any(a.is_deleted() or a.size == 0 for a in ray_arrays):
             arrays += ray_arrays
+    # Wait for the buffers with the GIL released: ``unsafe_buffer_pointer`` waits for a pending buffer while
+    # holding it, and a program queued before the one that computes the buffer may be running a traversal
+    # callback that needs the GIL (a deadlock).
+    jax.block_until_ready(arrays)
     addresses = [a.unsafe_buffer_pointer() for a in arrays]
     return np.array([[a & 0xFFFFFFFF, a >> 32] for a in addresses], np.uint32)
 
