@@ -10,6 +10,10 @@ scenes. Every test traces batches of one size through one scene capacity, so eac
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -344,6 +348,39 @@ def test_buffers_read_in_place_are_held_while_the_call_runs():
         for result in results:
             np.testing.assert_array_equal(np.asarray(result), expected)
         del clutter
+
+
+_ONE_CORE_SCRIPT = """
+import os
+os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})  # before jax starts its threads: all share one core
+import numpy as np
+import jaxrt as rt
+rng = np.random.default_rng(5)
+v = rng.normal(size=(200, 3)).astype(np.float32)
+f = rng.integers(0, 200, size=(300, 3)).astype(np.int32)
+origin = (rng.normal(size=(256, 3)) * 3).astype(np.float32)
+rays = rt.Ray(origin, (rng.normal(size=(256, 3)) * 0.3 - origin).astype(np.float32))
+intersector = rt.Intersector(backend="cpu")
+for _ in range(8):
+    results = [intersector.intersect(rays, rt.build_primitive_structure(rt.TriangleGeometry(v, f))) for _ in range(6)]
+    for result in results:
+        np.asarray(result.primitive_id)
+print("done")
+"""
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="needs os.sched_setaffinity (Linux)")
+def test_calls_queued_behind_running_traversals_do_not_deadlock_on_one_core():
+    """Calls made while earlier ones still run (their structures still being built) finish: taking a buffer's
+    address waits for it without holding the GIL that a running traversal's callback needs. On one core the
+    deadlock this guards against showed in about half of such runs."""
+    try:
+        done = subprocess.run(
+            [sys.executable, "-c", _ONE_CORE_SCRIPT], capture_output=True, text=True, timeout=180, check=False
+        )
+    except subprocess.TimeoutExpired:
+        pytest.fail("intersect calls queued behind running CPU traversals deadlocked (no progress in 180 s)")
+    assert done.returncode == 0 and done.stdout.strip() == "done", done.stderr[-2000:]
 
 
 # --- backend choice ---------------------------------------------------------------------------------------------
