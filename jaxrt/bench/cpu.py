@@ -12,7 +12,9 @@ keeping the best round compares the tracers under the same load):
 
 jaxrt runs with each thread count of ``--threads`` (``JAXRT_CPU_THREADS``; default 1 and every core). The
 ``per core / embree`` column divides the ``intersect`` rate by the thread count and by Embree's one-thread
-rate. Flags: ``--scenes``, ``--rays``, ``--repeats``, ``--threads``, ``--data-dir``, ``--json PATH``.
+rate. ``--quality`` picks the build (``fast``: the LBVH, the default; ``high``: clustering, closer to the
+SAH-quality trees Embree builds); several qualities give a row each. Flags: ``--scenes``, ``--rays``,
+``--repeats``, ``--threads``, ``--quality``, ``--data-dir``, ``--json PATH``.
 """
 
 from __future__ import annotations
@@ -51,11 +53,16 @@ def _kernel_call(structure: Any, intersector: rt.Intersector, rays: rt.Ray) -> C
 
 
 def measure_scene(
-    name: str, n_rays: int, repeats: int, threads: Sequence[int], data_dir: str | None = None
+    name: str,
+    n_rays: int,
+    repeats: int,
+    threads: Sequence[int],
+    data_dir: str | None = None,
+    quality: str = "fast",
 ) -> list[dict[str, Any]]:
-    """Rows of Mrays/s (best of ``repeats`` alternating rounds) for one scene."""
+    """Rows of Mrays/s (best of ``repeats`` alternating rounds) for one scene built with ``quality``."""
     scene = load_scene(name, data_dir=data_dir)
-    structure = rt.build_primitive_structure(rt.TriangleGeometry(scene.vertices, scene.indices))
+    structure = rt.build_primitive_structure(rt.TriangleGeometry(scene.vertices, scene.indices), quality=quality)
     embree = None
     if embree_unavailable_reason() is None:
         embree = Embree(scene.vertices, scene.indices)
@@ -81,14 +88,14 @@ def measure_scene(
                     if round_:
                         best[key] = min(best[key], seconds)
             os.environ.pop("JAXRT_CPU_THREADS", None)
-            row = {"scene": name, "rays": kind, "query": "any" if any_hit else "closest"}
+            row = {"scene": name, "quality": quality, "rays": kind, "query": "any" if any_hit else "closest"}
             row.update({key: n_rays / s / 1e6 for key, s in best.items()})
             rows.append(row)
     return rows
 
 
 def _format(row: dict[str, Any], threads: Sequence[int]) -> str:
-    parts = [f"{row['scene']:7s} {row['rays']:8s} {row['query']:8s}"]
+    parts = [f"{row['scene']:7s} {row['quality']:5s} {row['rays']:8s} {row['query']:8s}"]
     for count in threads:
         parts.append(
             f"kernel {count}t {row[f'kernel {count}t']:5.2f}  intersect {count}t {row[f'intersect {count}t']:5.2f}"
@@ -109,6 +116,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--rays", type=int, default=1 << 16)
     parser.add_argument("--repeats", type=int, default=5, help="alternating rounds; the best is kept (default 5)")
     parser.add_argument("--threads", type=int, nargs="+", help="jaxrt thread counts (default: 1 and every core)")
+    parser.add_argument("--quality", nargs="+", default=["fast"], choices=["fast", "high"], help="build quality")
     parser.add_argument("--data-dir", help="shared mesh folder (default: $JAXRT_DATA_DIR or ../shared/data)")
     parser.add_argument("--json", metavar="PATH", help="also write the rows and the machine info to PATH")
     args = parser.parse_args(argv)
@@ -121,9 +129,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"Mrays/s, {args.rays:,} rays, best of {args.repeats} alternating rounds; load average {os.getloadavg()}")
     rows = []
     for name in args.scenes:
-        for row in measure_scene(name, args.rays, args.repeats, threads, args.data_dir):
-            print(_format(row, threads), flush=True)
-            rows.append(row)
+        for quality in args.quality:
+            for row in measure_scene(name, args.rays, args.repeats, threads, args.data_dir, quality):
+                print(_format(row, threads), flush=True)
+                rows.append(row)
     print(f"load average at the end {os.getloadavg()}")
     if args.json:
         with open(args.json, "w") as f:
