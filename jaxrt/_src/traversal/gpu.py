@@ -7,11 +7,12 @@ instance chain. :func:`trace` is the same for a primitive structure.
 
 The intersector picks this path (``backend="auto"`` or ``"gpu"``) when :func:`unavailable_reason` returns
 ``None``: the default JAX backend is a GPU, Triton and jax-triton import (``pip install jaxrt[gpu]``), geometry
-is float32, and the intersector asks only for what the kernel covers (triangles, nearest and any hit, cull
-modes and windings, ray intervals, masks and disabled rays, several geometries per structure, instances over
-any number of levels, keyframe motion of triangles and instances at each ray's time, the ``K`` nearest hits
-of ``max_hits`` with each hit's instance chain, counting every hit, and the tags of
-:data:`COVERED_TAGS`). Triton is imported only here and only when a trace is compiled, so CPU-only installs
+is float32, and the intersector asks only for what the kernel covers (triangles, bounding boxes whose
+intersection functions are the built-in sphere, disk and capped cylinder (:func:`analytic_leaves`; not with
+keyframe motion), nearest and any hit, cull modes and windings, ray intervals, masks and disabled rays,
+several geometries per structure, instances over any number of levels, keyframe motion of triangles and
+instances at each ray's time, the ``K`` nearest hits of ``max_hits`` with each hit's instance chain, counting
+every hit, and the tags of :data:`COVERED_TAGS`). Triton is imported only here and only when a trace is compiled, so CPU-only installs
 never import it.
 
 The kernel traces the scene's binary nodes by default; ``KernelOptions(node_width=4)`` traces a 4-wide tree
@@ -326,9 +327,11 @@ def _kernel(*args, config: _Config) -> tuple[jax.Array, ...]:
             nodes = pack_nodes(config.options, node_lower, node_upper, node_children, node_range)
         if config.leaf_keys:
             triangles = packed.pack_triangle_keys(leaf_keys, leaf_moving)
+        elif config.analytic and not config.analytic & 8:  # no triangles: the analytic rows are the leaf rows
+            triangles = leaf_analytic
         else:
             triangles = packed.pack_triangles(leaf_triangle)
-    if config.analytic:  # analytic leaves take their parameter rows (shape code in column 3)
+    if config.analytic and triangles is not leaf_analytic:  # analytic leaves take their rows (code in column 3)
         triangles = jnp.where(leaf_analytic[:, 3:4] != 0, leaf_analytic, triangles)
     instances = packed.pack_instances(world_to_object, child_root, facing, instance_mask)
     extended = config.levels > 0 or config.roots or config.motion or bool(config.analytic)
