@@ -141,7 +141,8 @@ def bench_spheres(count: int, n_rays: int, repeats: int, seed: int = 0) -> list[
     def user_sphere(ray, candidate):
         return rt.intersection_functions.sphere(ray, candidate)
 
-    functions = (("boxes + analytic sphere", rt.intersection_functions.sphere), ("boxes + user sphere function", user_sphere))  # fmt: skip
+    functions = (("boxes + analytic sphere", rt.intersection_functions.sphere),
+                 ("boxes + user sphere function", user_sphere))  # fmt: skip
     for name, fn in functions:
         intersector = rt.Intersector(intersection_functions={0: fn})
         trace, distance = _trace(intersector, structure, rays, repeats)

@@ -12,8 +12,8 @@ intersection functions are the built-in sphere, disk and capped cylinder (:func:
 keyframe motion), nearest and any hit, cull modes and windings, ray intervals, masks and disabled rays,
 several geometries per structure, instances over any number of levels, keyframe motion of triangles and
 instances at each ray's time, the ``K`` nearest hits of ``max_hits`` with each hit's instance chain, counting
-every hit, and the tags of :data:`COVERED_TAGS`). Triton is imported only here and only when a trace is compiled, so CPU-only installs
-never import it.
+every hit, and the tags of :data:`COVERED_TAGS`). Triton is imported only here and only when a trace is
+compiled, so CPU-only installs never import it.
 
 The kernel traces the scene's binary nodes by default; ``KernelOptions(node_width=4)`` traces a 4-wide tree
 with leaf clusters collapsed from them on every call (slower on an H200: docs/performance.md). The 4-wide
