@@ -100,9 +100,10 @@ def test_custom_geometry_bench_reports_analytic_spheres_exactly(tmp_path):
     results = custom.main(["--spheres", "20", "--triangles", "500", "--rays", "256", "--repeats", "0",
                            "--json", str(path)])  # fmt: skip
     assert json.loads(path.read_text())["config"]["spheres"] == 20
-    boxes, *tessellated = results["spheres"]
+    boxes, user, *tessellated = results["spheres"]
     assert boxes["hits"] > 0 and boxes["hit_mismatches"] == 0
     assert boxes["max_rel_error"] < 1e-5  # float32 analytic roots against float64 ones
+    assert user["hits"] == boxes["hits"] and user["path"] == "portable"  # a user function: the portable path
     assert len(tessellated) == 3 and all(row["trace"]["mrays_s"] > 0 for row in tessellated)
     # The finest tessellation is closer to the sphere than the coarsest.
     assert tessellated[-1]["median_rel_error"] < tessellated[0]["median_rel_error"]

@@ -91,22 +91,49 @@ def kernel_declines(intersector: Any, geometry_info: tuple, backend: str = "gpu"
 
     The one place that decides their coverage (with :func:`jaxrt._src.traversal.gpu.unavailable_reason` and
     :func:`jaxrt._src.traversal.cpu.unavailable_reason` for the machine and the tags). Both cover the same
-    cases except keyframe motion and hit lists (``max_hits`` and counting), which only the GPU kernel traces.
-    Declined scenes take the portable traversal: curves, bounding boxes with intersection functions and filters
-    call JAX code per candidate, and the CPU loop keeps no hit lists.
+    cases except keyframe motion, hit lists (``max_hits`` and counting) and bounding boxes whose functions are
+    the built-in ``rt.intersection_functions`` (recognised by identity), which only the GPU kernel traces.
+    Declined scenes take the portable traversal: curves, user intersection functions and filters call JAX
+    code per candidate, and the CPU loop keeps no hit lists.
     """
     name = "CPU traversal" if backend == "cpu" else "GPU kernel"
     kinds = {g.kind for g in geometry_info}
     if "curve" in kinds:
         return f"curves are not covered by the {name}"
     if "bounding_box" in kinds:
-        return f"bounding-box geometry (intersection functions) is not covered by the {name}"
+        reason = _analytic_declines(intersector, backend, motion or any(g.motion for g in geometry_info))
+        if reason is not None:
+            return reason
     if intersector.filter is not None and any(g.kind == "triangle" and not g.opaque for g in geometry_info):
         return f"filters on non-opaque geometry are not covered by the {name}"
     if backend == "cpu" and (intersector.max_hits is not None or intersector.counts_all):
         return f"multi-hit (max_hits) and counting are not covered by the {name}"
     if backend == "cpu" and (motion or any(g.motion for g in geometry_info)):
         return f"keyframe motion is not covered by the {name}"
+    return None
+
+
+def _analytic_declines(intersector: Any, backend: str, motion: bool) -> str | None:
+    """Why the compiled traversal of ``backend`` does not cover the bounding-box geometry of a scene traced
+    with ``intersector`` (``None``: the GPU kernel does, every function being built-in)."""
+    from jaxrt._src.primitives import analytic
+
+    if backend == "cpu":
+        return "bounding-box geometry (intersection functions) is not covered by the CPU traversal"
+    functions = intersector.intersection_functions or ()
+    user = [
+        f"geometry {index}: {getattr(fn, '__name__', repr(fn))}"
+        for index, fn in functions
+        if not analytic.shape_code(fn)
+    ]
+    if user or not functions:
+        listed = f" ({', '.join(user)})" if user else ""
+        return (
+            f"bounding-box geometry with user intersection functions{listed} is not covered by the GPU kernel "
+            "(it traces rt.intersection_functions.sphere, disk and capped_cylinder)"
+        )
+    if motion:
+        return "bounding-box geometry in a scene with keyframe motion is not covered by the GPU kernel"
     return None
 
 
@@ -184,6 +211,8 @@ def trace(intersector: Any, view: SceneView, rays: SanitizedRays, host: Any = No
         if backend == "gpu" and (intersector.max_hits is not None or intersector.counts_all):
             moving.update(max_hits=0 if intersector.counts_all else intersector.max_hits)
             moving.update(count_all=intersector.counts_all)
+        if backend == "gpu" and "bounding_box" in view.kinds:  # built-in functions (kernel_declines)
+            moving.update(analytic=gpu.analytic_leaves(intersector.intersection_functions, view))
         return (cpu if backend == "cpu" else gpu).trace_scene(
             jax.tree_util.tree_map(detached, view.traversal),
             view.layout,

@@ -3,14 +3,17 @@ error.
 
 Two tables:
 
-1. *Spheres.* The same random spheres as bounding boxes with the analytic intersection function
-   (``rt.intersection_functions.sphere``), and tessellated to icospheres of 80, 320 and 1280 triangles.
-   Mrays/s of camera rays, and the distance error of each against the float64 analytic nearest hit (median
-   and max relative error over rays where both hit, and rays whose hit/miss differs from the reference).
+1. *Spheres.* The same random spheres as bounding boxes with the built-in analytic intersection function
+   (``rt.intersection_functions.sphere``, which the GPU kernel traces itself), as boxes with a user function
+   calling it (traced by the portable traversal), and tessellated to icospheres of 80, 320 and 1280
+   triangles. Mrays/s of camera rays, and the distance error of each against the float64 analytic nearest
+   hit (median and max relative error over rays where both hit, and rays whose hit/miss differs from the
+   reference).
 2. *Filters.* One triangle mesh traced opaque without a filter, opaque with a filter (which opaque geometry
    never uses), non-opaque with a filter that accepts everything, and non-opaque with an alpha filter that
    rejects about half the triangles; also the 4 nearest hits (``max_hits=4``) and ``count_intersections``.
-   Each row names the traversal that ran (``path``: the GPU kernel, the CPU traversal or the portable one).
+   Each row of both tables names the traversal that ran (``path``: the GPU kernel, the CPU traversal or the
+   portable one).
 
 Flags: ``--quick`` (tiny sizes, one repeat), ``--spheres``, ``--triangles``, ``--rays``, ``--repeats``,
 ``--json PATH``. Only jax and numpy are needed.
@@ -134,10 +137,17 @@ def bench_spheres(count: int, n_rays: int, repeats: int, seed: int = 0) -> list[
     data = {"center": center.astype(np.float32), "radius": radius.astype(np.float32)}
     boxes = rt.BoundingBoxGeometry(lower, upper, primitive_data=data)
     build, structure = timed(lambda: rt.build_primitive_structure(boxes), repeats)
-    intersector = rt.Intersector(intersection_functions={0: rt.intersection_functions.sphere})
-    trace, distance = _trace(intersector, structure, rays, repeats)
-    rows.append({"geometry": "boxes + analytic sphere", "primitives": count, "build": build.as_dict(count, "mprims_s"),
-                 "trace": trace, **_errors(distance, reference)})  # fmt: skip
+
+    def user_sphere(ray, candidate):
+        return rt.intersection_functions.sphere(ray, candidate)
+
+    functions = (("boxes + analytic sphere", rt.intersection_functions.sphere),
+                 ("boxes + user sphere function", user_sphere))  # fmt: skip
+    for name, fn in functions:
+        intersector = rt.Intersector(intersection_functions={0: fn})
+        trace, distance = _trace(intersector, structure, rays, repeats)
+        rows.append({"geometry": name, "primitives": count, "build": build.as_dict(count, "mprims_s"), "trace": trace,
+                     **_errors(distance, reference), "path": traversal_path(intersector, structure)})  # fmt: skip
     for level in (1, 2, 3):
         unit, faces = icosphere(level)
         vertices = (center[:, None, :] + radius[:, None, None] * unit[None]).reshape(-1, 3).astype(np.float32)
@@ -147,7 +157,7 @@ def bench_spheres(count: int, n_rays: int, repeats: int, seed: int = 0) -> list[
         trace, distance = _trace(rt.Intersector(), structure, rays, repeats)
         rows.append({"geometry": f"icospheres, {faces.shape[0]} triangles each", "primitives": int(indices.shape[0]),
                      "build": build.as_dict(int(indices.shape[0]), "mprims_s"), "trace": trace,
-                     **_errors(distance, reference)})  # fmt: skip
+                     **_errors(distance, reference), "path": traversal_path(rt.Intersector(), structure)})  # fmt: skip
     return rows
 
 
@@ -195,12 +205,13 @@ def bench_filters(triangles: int, n_rays: int, repeats: int, seed: int = 0) -> l
 
 def format_tables(results: dict[str, Any]) -> str:
     """Both tables as Markdown."""
-    lines = ["| spheres as | primitives | build Mprims/s | Mrays/s | hits | hit/miss vs ref | median rel err | max rel err |",
-             "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    lines = ["| spheres as | primitives | build Mprims/s | Mrays/s | hits | hit/miss vs ref | median rel err | max rel err | traversal |",
+             "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for r in results["spheres"]:
         lines.append(
             f"| {r['geometry']} | {r['primitives']:,} | {r['build']['mprims_s']:.2f} | {r['trace']['mrays_s']:.3f} "
-            f"| {r['hits']:,} | {r['hit_mismatches']} | {r['median_rel_error']:.1e} | {r['max_rel_error']:.1e} |"
+            f"| {r['hits']:,} | {r['hit_mismatches']} | {r['median_rel_error']:.1e} | {r['max_rel_error']:.1e} "
+            f"| {r.get('path', '')} |"
         )
     lines += ["", "| filter case | Mrays/s | hits | traversal |", "|---|---|---|---|"]
     for r in results["filters"]:

@@ -19,7 +19,16 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-__all__ = ["sphere", "disk", "capped_cylinder", "sphere_bounds", "disk_bounds", "capped_cylinder_bounds"]
+__all__ = [
+    "sphere",
+    "disk",
+    "capped_cylinder",
+    "sphere_bounds",
+    "disk_bounds",
+    "capped_cylinder_bounds",
+    "SHAPE_CODES",
+    "shape_code",
+]
 
 
 def _param(candidate: Any, name: str) -> jax.Array:
@@ -114,6 +123,19 @@ def capped_cylinder(ray: Any, candidate: Any) -> tuple[jax.Array, jax.Array]:
         radial = oc_perp + t * d_perp
         caps.append((cap_ok & (jnp.dot(radial, radial) <= radius * radius * length2 * length2), t))
     return _nearest(ray, *walls, *caps)
+
+
+#: The GPU kernel's code of each built-in function (:mod:`jaxrt._src.traversal.triton_analytic` repeats
+#: their formulas); a box geometry with any other function is traced by the portable traversal.
+SHAPE_CODES = {sphere: 1, disk: 2, capped_cylinder: 3}
+
+
+def shape_code(fn: Any) -> int:
+    """The kernel code of ``fn`` when it is one of the built-in functions (by identity), else 0."""
+    for builtin, code in SHAPE_CODES.items():
+        if fn is builtin:
+            return code
+    return 0
 
 
 def sphere_bounds(center: Any, radius: Any) -> tuple[jax.Array, jax.Array]:

@@ -7,12 +7,13 @@ instance chain. :func:`trace` is the same for a primitive structure.
 
 The intersector picks this path (``backend="auto"`` or ``"gpu"``) when :func:`unavailable_reason` returns
 ``None``: the default JAX backend is a GPU, Triton and jax-triton import (``pip install jaxrt[gpu]``), geometry
-is float32, and the intersector asks only for what the kernel covers (triangles, nearest and any hit, cull
-modes and windings, ray intervals, masks and disabled rays, several geometries per structure, instances over
-any number of levels, keyframe motion of triangles and instances at each ray's time, the ``K`` nearest hits
-of ``max_hits`` with each hit's instance chain, counting every hit, and the tags of
-:data:`COVERED_TAGS`). Triton is imported only here and only when a trace is compiled, so CPU-only installs
-never import it.
+is float32, and the intersector asks only for what the kernel covers (triangles, bounding boxes whose
+intersection functions are the built-in sphere, disk and capped cylinder (:func:`analytic_leaves`; not with
+keyframe motion), nearest and any hit, cull modes and windings, ray intervals, masks and disabled rays,
+several geometries per structure, instances over any number of levels, keyframe motion of triangles and
+instances at each ray's time, the ``K`` nearest hits of ``max_hits`` with each hit's instance chain, counting
+every hit, and the tags of :data:`COVERED_TAGS`). Triton is imported only here and only when a trace is
+compiled, so CPU-only installs never import it.
 
 The kernel traces the scene's binary nodes by default; ``KernelOptions(node_width=4)`` traces a 4-wide tree
 with leaf clusters collapsed from them on every call (slower on an H200: docs/performance.md). The 4-wide
@@ -53,6 +54,7 @@ from jaxrt._src.traversal.scene import TraversalLayout, TraversalResult, Travers
 from jaxrt._src.traversal.step import HitList
 
 __all__ = [
+    "AnalyticLeaves",
     "KernelOptions",
     "DEFAULT_OPTIONS",
     "COVERED_TAGS",
@@ -60,6 +62,7 @@ __all__ = [
     "unavailable_reason",
     "trace",
     "trace_scene",
+    "analytic_leaves",
 ]
 
 #: Intersector tags whose fields the GPU path can produce (the intersector re-computes them from the leaf and
@@ -81,7 +84,7 @@ COVERED_TAGS = frozenset(
 #: and per-level rays below instances) to ``MAX_PROGRAMS * rays_per_program`` times the entries per ray.
 MAX_PROGRAMS = 1 << 15
 #: Leading arguments of the kernel call that come from the scene (the rest are per ray).
-SCENE_ARGS = 14
+SCENE_ARGS = 15
 #: Per-ray arguments after them (origin, direction, t_min, t_max, enabled, mask, time, root); a prepacked call
 #: appends the structure's node and triangle rows (:class:`~jaxrt._src.traversal.packed.KernelLayout`).
 RAY_ARGS = 8
@@ -143,6 +146,7 @@ class _Config:
     prepacked: bool = False  # the node and triangle rows come with the arguments (packed at build time)
     max_hits: int = 0  # keep this many nearest hits per ray (0: the nearest hit only)
     count: bool = False  # count every accepted hit (no hit list)
+    analytic: int = 0  # analytic leaves: bits 0-2 their shapes, bit 3 triangles too (0: triangles only)
 
     @property
     def hit_list(self) -> bool:
@@ -254,7 +258,7 @@ def kernel_call(
         LEAF_KEYS=config.leaf_keys,
         IWIDTH=4 + 12 * config.instance_keys if config.instance_keys else 0,
     )
-    params.update(MAX_HITS=config.max_hits, COUNT=config.count)
+    params.update(MAX_HITS=config.max_hits, COUNT=config.count, ANALYTIC=config.analytic)
     k = config.max_hits
     extra = (
         jax.ShapeDtypeStruct((max(1, levels * size),), jnp.int32),  # instance chain, (levels, size)
@@ -309,8 +313,8 @@ def _kernel(*args, config: _Config) -> tuple[jax.Array, ...]:
     ``(hit distances (n, K), hit leaves (n, K), hits accepted (n,), hit chains (n, K, levels))`` after them.
     """
     (node_lower, node_upper, node_children, node_range, leaf_triangle, world_to_object, child_root, facing,
-     instance_mask, node_keys_lower, node_keys_upper, leaf_keys, leaf_moving, instance_motion, origin, direction,
-     t_min, t_max, enabled, mask, time, root) = args[: SCENE_ARGS + RAY_ARGS]  # fmt: skip
+     instance_mask, node_keys_lower, node_keys_upper, leaf_keys, leaf_moving, instance_motion, leaf_analytic,
+     origin, direction, t_min, t_max, enabled, mask, time, root) = args[: SCENE_ARGS + RAY_ARGS]  # fmt: skip
     n = origin.shape[0]
     lanes = config.options.rays_per_program
     size = max(lanes, -(-n // lanes) * lanes)
@@ -323,10 +327,14 @@ def _kernel(*args, config: _Config) -> tuple[jax.Array, ...]:
             nodes = pack_nodes(config.options, node_lower, node_upper, node_children, node_range)
         if config.leaf_keys:
             triangles = packed.pack_triangle_keys(leaf_keys, leaf_moving)
+        elif config.analytic and not config.analytic & 8:  # no triangles: the analytic rows are the leaf rows
+            triangles = leaf_analytic
         else:
             triangles = packed.pack_triangles(leaf_triangle)
+    if config.analytic and triangles is not leaf_analytic:  # analytic leaves take their rows (code in column 3)
+        triangles = jnp.where(leaf_analytic[:, 3:4] != 0, leaf_analytic, triangles)
     instances = packed.pack_instances(world_to_object, child_root, facing, instance_mask)
-    extended = config.levels > 0 or config.roots or config.motion
+    extended = config.levels > 0 or config.roots or config.motion or bool(config.analytic)
     motion = None
     if config.motion:
         if config.leaf_keys:  # the scene's keyframe segment at each ray's time, as the portable path finds it
@@ -381,7 +389,7 @@ def _concatenate_scenes(scene: list[jax.Array], root: jax.Array) -> tuple[list[j
     flat = lambda a: a.reshape(-1, *a.shape[2:])  # noqa: E731
     arrays = [node_lower, node_upper, children, node_range, leaf_triangle, world_to_object]
     arrays += [child_root + index[:, None] * m, facing, instance_mask]
-    arrays += motion  # keyframe rows: node-, leaf- and instance-major, so they hold no indices to move
+    arrays += motion  # keyframe and analytic rows: node-, leaf- and instance-major, no indices to move
     return [flat(a) for a in arrays], flat(root + index[:, None] * m), p, g
 
 
@@ -458,6 +466,78 @@ def leaf_motion(view: Any) -> LeafMotion | None:
     return LeafMotion(motion.spec, lax.stop_gradient(motion.triangle), moving)
 
 
+class AnalyticLeaves(NamedTuple):
+    """The parameter rows of a scene's analytic leaves, as the kernel reads them (:func:`analytic_leaves`)."""
+
+    rows: jax.Array  # (P, 12) float32: :func:`~jaxrt._src.traversal.packed.pack_analytic`, code 0 elsewhere
+    shapes: int  # static: bit ``code - 1`` for each shape of the intersector's functions, bit 3 with triangles
+
+
+def analytic_leaves(functions: Any, view: Any) -> AnalyticLeaves | None:
+    """The :class:`AnalyticLeaves` of a :class:`~jaxrt._src.scene_view.SceneView` whose bounding-box
+    geometries use built-in functions (``functions``: the intersector's ``(geometry index, fn)`` pairs;
+    ``None`` without box geometry).
+
+    Each box leaf's shape is the code of its geometry's function (keyed by the geometry's index within its
+    structure, as the portable ``call_function``); its parameters are read as the function reads them: from
+    the scene's primitive data, or, for a sphere in a scene without primitive data, from the leaf's box.
+
+    Raises:
+      ValueError: a function that is not built-in, or primitive data without the fields a function reads.
+    """
+    from jaxrt._src import leaves as leaf_tests
+    from jaxrt._src.primitives import analytic
+
+    if "bounding_box" not in view.kinds:
+        return None
+    codes = np.zeros(len(view.geometry_info) + 1, np.int32)  # by geometry index; the last entry: padding
+    shapes = 8 if "triangle" in view.kinds else 0
+    for index, fn in functions or ():
+        code = analytic.shape_code(fn)
+        if not code:
+            raise ValueError(f"traversal.gpu: the intersection function of geometry {index} ({fn!r}) is not built-in")
+        if index < codes.shape[0] - 1:
+            codes[index] = code
+        shapes |= 1 << (code - 1)
+    leaves = view.leaves
+    count = leaves.geometry.shape[0]
+    is_box = view.leaf_flag(view.slot_table(leaf_tests.box_slots(view)), jnp.arange(count))
+    geometry = jnp.where(leaves.geometry < 0, codes.shape[0] - 1, leaves.geometry)
+    code = jnp.where(is_box, jnp.asarray(codes)[geometry], 0)
+    data = jax.tree_util.tree_map(lax.stop_gradient, leaves.primitive_data)
+
+    def field(name: str, shape: tuple) -> jax.Array:
+        if data is None or not isinstance(data, dict) or name not in data:
+            raise ValueError(f"intersection function needs primitive_data[{name!r}] (per-primitive parameters)")
+        value = data[name]
+        if tuple(value.shape[1:]) != shape:
+            raise ValueError(
+                f"traversal.gpu: primitive_data[{name!r}] has rows of shape {tuple(value.shape[1:])}; the built-in "
+                f"intersection functions read {shape}"
+            )
+        return value.astype(jnp.float32)
+
+    zero3, zero = jnp.zeros((count, 3), jnp.float32), jnp.zeros((count,), jnp.float32)
+    first, second, radius = zero3, zero3, zero
+    for shape in (1, 2, 3):
+        if not shapes & (1 << (shape - 1)):
+            continue
+        if shape == 1 and data is None:  # the sphere inscribed in the box, as ``analytic.sphere`` takes it
+            box = lax.stop_gradient(leaves.box).astype(jnp.float32)
+            p, q, r = 0.5 * (box[:, 0] + box[:, 1]), zero3, 0.5 * jnp.min(box[:, 1] - box[:, 0], axis=-1)
+        elif shape == 1:
+            p, q, r = field("center", (3,)), zero3, field("radius", ())
+        elif shape == 2:
+            p, q, r = field("center", (3,)), field("normal", (3,)), field("radius", ())
+        else:
+            p, q, r = field("p0", (3,)), field("p1", (3,)), field("radius", ())
+        mine = code == shape
+        first = jnp.where(mine[:, None], p, first)
+        second = jnp.where(mine[:, None], q, second)
+        radius = jnp.where(mine, r, radius)
+    return AnalyticLeaves(packed.pack_analytic(code, first, second, radius), shapes)
+
+
 def _motion_arguments(scene: TraversalScene, layout: TraversalLayout, leaves: LeafMotion | None, config: _Config):
     """The kernel's keyframe arrays (node-, leaf- and instance-major; small placeholders where the scene has
     none) and the configuration with their keyframe counts."""
@@ -505,6 +585,7 @@ def trace_scene(
     leaf_motion: LeafMotion | None = None,
     max_hits: int | None = None,
     count_all: bool = False,
+    analytic: AnalyticLeaves | None = None,
 ) -> TraversalResult:
     """Trace rays through a scene of any instance depth with the GPU kernel.
 
@@ -528,6 +609,8 @@ def trace_scene(
         :class:`~jaxrt._src.traversal.step.HitList`, as the portable traversal's ``max_hits``, with each hit's
         instance chain below instances; not with ``any_hit``). ``0`` with ``count_all``.
       count_all: static; count every accepted hit in ``hits.total`` (no culling), at any instance depth.
+      analytic: the parameter rows of the scene's analytic leaves (:func:`analytic_leaves`): bounding-box
+        leaves tested as the built-in intersection functions test them (not with keyframe motion).
 
     Returns:
       The portable traversal's :class:`~jaxrt._src.traversal.scene.TraversalResult`: the leaf (-1 on a miss),
@@ -545,10 +628,12 @@ def trace_scene(
             "traversal.gpu.trace_scene: hit lists need max_hits >= 1 (0 with count_all) and no any_hit "
             f"(got max_hits={max_hits}, count_all={count_all}, any_hit={any_hit})"
         )
-    if hit_list:  # the 4-wide layout keeps no hit lists
+    if hit_list or analytic is not None:  # the 4-wide layout keeps no hit lists and tests triangles only
         options = dataclasses.replace(options, node_width=2)
     if layout.motion and time is None:
         raise ValueError("traversal.gpu.trace_scene: the scene has keyframe motion; pass each ray's time")
+    if layout.motion and analytic is not None:
+        raise ValueError("traversal.gpu.trace_scene: analytic leaves are not covered with keyframe motion")
     moving = layout.motion and (
         scene.node_motion is not None or scene.instance_motion is not None or leaf_motion is not None
     )
@@ -569,6 +654,7 @@ def trace_scene(
         prepacked=prepacked,
         max_hits=k,
         count=bool(count_all),
+        analytic=0 if analytic is None else int(analytic.shapes),
     )
     detached = lax.stop_gradient
     motion_args, config = _motion_arguments(scene, layout, leaf_motion, config)
@@ -585,6 +671,7 @@ def trace_scene(
         scene.instance_facing,
         scene.instance_mask,
         *(detached(a) for a in motion_args),
+        jnp.zeros((1, packed.TRIANGLE_WIDTH), jnp.float32) if analytic is None else detached(analytic.rows),
         *(detached(a) for a in (origin, direction, t_min, t_max)),
         enabled,
         mask.astype(jnp.uint32),

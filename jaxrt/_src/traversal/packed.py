@@ -36,6 +36,11 @@ columns  contents
 Triangle row, ``(C, 12)`` float32, one per leaf: ``v0.x, v1.x, v2.x, 0, v0.y, v1.y, v2.y, 0, v0.z, v1.z,
 v2.z, 0``.
 
+Analytic row, ``(C, 12)``, in place of the triangle row of a bounding-box leaf whose geometry uses a built-in
+intersection function (:func:`pack_analytic`): ``p.x, p.y, p.z, code, q.x, q.y, q.z, radius, 0, 0, 0, 0``,
+with ``code`` 1 for a sphere (``p`` its centre), 2 for a disk (``p`` its centre, ``q`` its normal) and 3 for a
+capped cylinder (``p``, ``q`` the axis ends ``p0``, ``p1``). A triangle row has 0 in column 3.
+
 Instance row, ``(G, 16)`` float32, one per instance of an instanced scene (read when a ray enters it):
 the world-to-object transform row by row (columns 0-11), then as int32 bits the global root node of its
 child (12), its facing in {-1, 0, +1} (13) and its mask (14, uint32 bits); column 15 is zero. A scene
@@ -92,6 +97,7 @@ __all__ = [
     "pack_instance_motion",
     "KernelLayout",
     "kernel_layout",
+    "pack_analytic",
 ]
 
 NODE_WIDTH = 16
@@ -319,6 +325,22 @@ def pack_rays(
     )
     columns = jnp.pad(columns, ((0, size - n), (0, 0)))
     return columns.T
+
+
+def pack_analytic(code: jax.Array, first: jax.Array, second: jax.Array, radius: jax.Array) -> jax.Array:
+    """The ``(C, 12)`` float32 analytic rows (layout in the module docstring) from each leaf's shape ``code``
+    ``(C,)`` (0: not analytic), ``first`` and ``second`` ``(C, 3)`` and ``radius`` ``(C,)``."""
+    c = code.shape[0]
+    return jnp.concatenate(
+        [
+            first.astype(jnp.float32),
+            code.astype(jnp.float32)[:, None],
+            second.astype(jnp.float32),
+            radius.astype(jnp.float32)[:, None],
+            jnp.zeros((c, 4), jnp.float32),
+        ],
+        axis=-1,
+    )
 
 
 class KernelLayout(NamedTuple):

@@ -59,12 +59,22 @@ arrays), and the list must reach memory anyway; an insertion is rare next to a s
 Both leaves of a step are tested against the bound before it and inserted leaf child 0 first; once more than
 ``K`` hits are known the bound is the ``K``-th distance, which culls boxes and leaves as in the portable path.
 ``COUNT`` counts every accepted hit and never lowers the bound.
+
+Analytic leaves (compile-time constant ``ANALYTIC``; 0 generates the triangle-only code): bounding-box leaves
+whose geometry uses a built-in intersection function carry its parameters in their triangle row, with the
+shape code in column 3 (0 for triangles; :func:`jaxrt._src.traversal.packed.pack_analytic`). :func:`_leaf`
+reads the code and runs :func:`jaxrt._src.traversal.triton_analytic.analytic_hit` (the shapes of bits 0-2 of
+``ANALYTIC``) and, where bit 3 says the scene also holds triangles, the watertight test on the lanes with a
+triangle, each behind a warp-uniform branch. The shapes see the ray of the current level (origin and
+unnormalised direction; the extended ray block carries the direction also without instances).
 """
 
 from __future__ import annotations
 
 import triton
 import triton.language as tl
+
+from jaxrt._src.traversal.triton_analytic import analytic_hit
 
 
 @triton.jit
@@ -259,6 +269,38 @@ def _triangle(
     distance = tl.math.div_rn(t_scaled, det_safe)
     hit = mask & inside & (distance >= t_min) & (distance <= t_max)
     return hit, tl.where(hit, distance, float("inf"))
+
+
+@triton.jit
+def _leaf(
+    tris_ptr, leaf, mask, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, t_max, facing, key_index, key_weight,
+    key_visible, ox, oy, oz, dx, dy, dz, CULL: tl.constexpr, LANES: tl.constexpr, VECTOR: tl.constexpr,
+    LEVELS: tl.constexpr, LEAF_KEYS: tl.constexpr, ANALYTIC: tl.constexpr,
+):  # fmt: skip
+    """The leaf test: :func:`_triangle`, or with ``ANALYTIC`` (analytic shapes in the scene) each leaf by the
+    shape code of its row, ``(hit, distance)``."""
+    if ANALYTIC == 0:
+        hit, distance = _triangle(
+            tris_ptr, leaf, mask, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, t_max, facing, key_index,
+            key_weight, key_visible, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS,
+        )  # fmt: skip
+    else:
+        px, py, pz, code = _quad(tris_ptr, leaf, 12, 0, mask, LANES, VECTOR)
+        qx, qy, qz, radius = _quad(tris_ptr, leaf, 12, 4, mask, LANES, VECTOR)
+        shaped = mask & (code != 0)
+        hit, distance = analytic_hit(
+            code, shaped, px, py, pz, qx, qy, qz, radius, ox, oy, oz, dx, dy, dz, t_min, t_max, ANALYTIC & 7
+        )
+        if (ANALYTIC & 8) != 0:
+            plain = mask & (code == 0)
+            if tl.max(plain.to(tl.int32), axis=0) > 0:
+                flat_hit, flat_t = _triangle(
+                    tris_ptr, leaf, plain, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, t_max, facing, key_index,
+                    key_weight, key_visible, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS,
+                )  # fmt: skip
+                hit = hit | flat_hit
+                distance = tl.where(flat_hit, flat_t, distance)
+    return hit, distance
 
 
 @triton.jit
@@ -753,6 +795,7 @@ def trace_kernel(
     IWIDTH: tl.constexpr,
     MAX_HITS: tl.constexpr = 0,
     COUNT: tl.constexpr = False,
+    ANALYTIC: tl.constexpr = 0,
 ):
     """Trace ``n_rays`` rays (a multiple of ``LANES``); outputs as :class:`~jaxrt._src.traversal.scene.TraversalResult`.
 
@@ -775,6 +818,10 @@ def trace_kernel(
     at the same distance), and once more than ``K`` hits are known the bound is the ``K``-th distance; the
     result's leaf is the first hit and its distance the bound. Below instances ``hit_chain_ptr``
     (``(K, LEVELS, n_rays)``) receives each hit's instance chain. ``COUNT`` counts every accepted hit in ``hit_total_ptr`` and never lowers the bound (the leaf stays -1).
+
+    Analytic leaves (``ANALYTIC = 0`` compiles none of this): bits 0-2 name the shapes of the scene (sphere,
+    disk, capped cylinder), bit 3 that it also holds triangles; see :func:`_leaf`. Without instances the
+    direction comes from the extended ray block (rows 17-19).
     """
     pid = tl.program_id(0)
     lane = tl.arange(0, LANES)
@@ -827,6 +874,14 @@ def trace_kernel(
                 tl.store(chain_ptr + index * n_rays + ray, tl.full((LANES,), -1, tl.int32))
         else:
             facing = 1
+            if ANALYTIC != 0:  # analytic shapes read the direction (extended ray block)
+                dx = tl.load(rays_ptr + 17 * n_rays + ray)
+                dy = tl.load(rays_ptr + 18 * n_rays + ray)
+                dz = tl.load(rays_ptr + 19 * n_rays + ray)
+            else:
+                dx = 0.0
+                dy = 0.0
+                dz = 0.0
         # One warp reduction per step: bit 0 / 1, some lane tests leaf child 0 / 1; bit 2, some lane was
         # active when the step began. The loop therefore ends one (fully masked, no-op) step after the last ray.
         go = tl.max(1 - done, axis=0)
@@ -870,12 +925,12 @@ def trace_kernel(
             if BRANCH:
                 # Skip a leaf test that no lane of the warp needs (a warp-uniform branch).
                 if (votes & 1) != 0:
-                    h0, t0 = _triangle(tris_ptr, -1 - c0, test0, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS)  # fmt: skip
+                    h0, t0 = _leaf(tris_ptr, -1 - c0, test0, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, ox, oy, oz, dx, dy, dz, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS, ANALYTIC)  # fmt: skip
                 if (votes & 2) != 0:
-                    h1, t1 = _triangle(tris_ptr, -1 - c1, test1, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS)  # fmt: skip
+                    h1, t1 = _leaf(tris_ptr, -1 - c1, test1, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, ox, oy, oz, dx, dy, dz, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS, ANALYTIC)  # fmt: skip
             else:
-                h0, t0 = _triangle(tris_ptr, -1 - c0, test0, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS)  # fmt: skip
-                h1, t1 = _triangle(tris_ptr, -1 - c1, test1, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS)  # fmt: skip
+                h0, t0 = _leaf(tris_ptr, -1 - c0, test0, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, ox, oy, oz, dx, dy, dz, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS, ANALYTIC)  # fmt: skip
+                h1, t1 = _leaf(tris_ptr, -1 - c1, test1, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, ox, oy, oz, dx, dy, dz, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS, ANALYTIC)  # fmt: skip
             second = t1 < t0
             best_t = tl.where(second, t1, t0)
             best_leaf = tl.where(second, -1 - c1, -1 - c0)
