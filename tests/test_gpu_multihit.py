@@ -328,36 +328,10 @@ def test_bad_hit_list_arguments_raise():
 
 def _kernel_ir(levels: int, max_hits: int, count: bool) -> str:
     """Triton IR of ``trace_kernel`` for a CUDA target (the front end only: no GPU needed)."""
-    from triton._C.libtriton import ir
-    from triton.backends.compiler import GPUTarget
-    from triton.compiler.compiler import ASTSource, make_backend
+    from kernel_binaries import compile_trace_kernel
 
-    from jaxrt._src.traversal import triton_kernel
-
-    fn = triton_kernel.trace_kernel
-    target = GPUTarget("cuda", 90, 32)
-    backend = make_backend(target)
-    options = backend.parse_options(dict(num_warps=1, num_stages=1, enable_fp_fusion=False))
     config = gpu._Config(False, 0, 24, levels, 8, gpu.DEFAULT_OPTIONS, levels > 0, max_hits=max_hits, count=count)
-    call = gpu.kernel_call(jnp.zeros((1, 16)), jnp.zeros((1, 12)), jnp.zeros((1, 16)), jnp.zeros((20, 64)), config)
-    arrays = [a for a in call.args if not isinstance(a, int)] + list(call.out_shape)
-    kinds = iter("*fp32" if a.dtype == jnp.float32 else "*i32" for a in arrays)
-    signature = {}
-    for name in fn.arg_names:
-        if name in call.params:
-            signature[name] = "constexpr"
-        elif name in ("n_rays", "n_programs", "n_primitives"):
-            signature[name] = "i32"
-        else:
-            signature[name] = next(kinds)
-    source = ASTSource(fn, signature, {k: v for k, v in call.params.items() if k in fn.arg_names})
-    context = ir.context()
-    ir.load_dialects(context)
-    backend.load_dialects(context)
-    module = source.make_ir(target, options, backend.get_codegen_implementation(options), {}, context)
-    stages = {}
-    backend.add_stages(stages, options, source.language)
-    return str(stages["ttir"](module, {}))
+    return compile_trace_kernel(config, stage="ttir")
 
 
 @pytest.mark.skipif(INTERPRETED, reason="compiles the kernel's IR (outside the interpreter)")
