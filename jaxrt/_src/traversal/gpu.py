@@ -255,18 +255,17 @@ def kernel_call(
         IWIDTH=4 + 12 * config.instance_keys if config.instance_keys else 0,
     )
     params.update(MAX_HITS=config.max_hits, COUNT=config.count)
-    if config.curves:
-        pieces, iterations, approach, tolerance, disk, sphere = config.curves
-        params.update(
-            CURVES=True,
-            PIECES=pieces,
-            NP=1 << max(0, (pieces - 1).bit_length()),
-            ITERATIONS=iterations,
-            APPROACH=approach,
-            TOLERANCE=float(np.float32(tolerance)),
-            DISK=disk,
-            SPHERE=sphere,
-        )
+    pieces, iterations, approach, tolerance, disk, sphere = config.curves or (1, 0, 0, 0.0, False, False)
+    params.update(
+        CURVES=bool(config.curves),
+        PIECES=pieces,
+        NP=1 << max(0, (pieces - 1).bit_length()),
+        ITERATIONS=iterations,
+        APPROACH=approach,
+        TOLERANCE=float(np.float32(tolerance)),
+        DISK=disk,
+        SPHERE=sphere,
+    )
     k = config.max_hits
     extra = (
         jax.ShapeDtypeStruct((max(1, levels * size),), jnp.int32),  # instance chain, (levels, size)

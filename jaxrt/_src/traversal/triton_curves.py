@@ -21,7 +21,7 @@ import triton
 import triton.language as tl
 
 #: Row width of a packed curve leaf (float32 columns): see :func:`jaxrt._src.traversal.packed.pack_curves`.
-CURVE_WIDTH = 24
+CURVE_WIDTH = tl.constexpr(24)
 
 
 @triton.jit
@@ -323,7 +323,7 @@ def _round_segment(
     LANES: tl.constexpr, PIECES: tl.constexpr, NP: tl.constexpr, ITERATIONS: tl.constexpr,
     APPROACH: tl.constexpr, TOLERANCE: tl.constexpr, DISK: tl.constexpr, SPHERE: tl.constexpr,
 ):  # fmt: skip
-    H: tl.constexpr = 1.0 / PIECES
+    H = 1.0 / PIECES
     bx = tl.load(row + 16, mask=mask, other=0.0) - ox
     by = tl.load(row + 17, mask=mask, other=0.0) - oy
     bz = tl.load(row + 18, mask=mask, other=0.0) - oz
