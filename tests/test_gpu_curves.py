@@ -113,9 +113,10 @@ def _rays(geometry, n: int, seed: int, *, t_min=None, t_max=None, disabled: int 
     return origin, direction, lo, hi, enabled
 
 
-def check(structure, ray_args, intersector: rt.Intersector = rt.Intersector(), *, any_hit: bool = False):
+def check(structure, ray_args, intersector: rt.Intersector | None = None, *, any_hit: bool = False):
     """The kernel against the portable traversal of the same view: equal leaves and counters, distances within
     the float32 distance tolerance."""
+    intersector = intersector or rt.Intersector()
     view = scene_view(structure)
     origin, direction, t_min, t_max, enabled = (jnp.asarray(a) for a in ray_args)
     mask = jnp.full(origin.shape[:1], ALL_RAYS, jnp.uint32)
@@ -147,7 +148,9 @@ def check_reference(geometry, ray_args, leaf, distance):
     rounding = ROUNDING * EPS32 * scale
     lo = np.asarray(t_min, np.float64)
     hi = np.where(enabled, np.asarray(t_max, np.float64), -np.inf)
-    ref = reference_hits(origin, direction, lo, hi, segments, ray_index, segment_index, band=1e-2 * radius + rounding.max())
+    ref = reference_hits(
+        origin, direction, lo, hi, segments, ray_index, segment_index, band=1e-2 * radius + rounding.max()
+    )
     ref_t = np.where(ref.hit & enabled[ray_index], ref.distance, np.inf).reshape(r, s)
     decided = ~ref.ambiguous.reshape(r, s).any(axis=1)
     nearest = ref_t.min(axis=1)

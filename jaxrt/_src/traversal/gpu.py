@@ -259,7 +259,6 @@ def kernel_call(
     params.update(
         CURVES=bool(config.curves),
         PIECES=pieces,
-        NP=1 << max(0, (pieces - 1).bit_length()),
         ITERATIONS=iterations,
         APPROACH=approach,
         TOLERANCE=float(np.float32(tolerance)),

@@ -5,8 +5,9 @@ tests one leaf per lane against the segment in its kernel row (:func:`jaxrt._src
 with the formulas of ``curve.intersect`` for a round segment, written in the same order of operations: the
 ray-space control points, the chord pieces as exact round cones and inner spheres, the safeguarded Newton
 steps towards the closest approach, the Newton refinement of the two starts, the chord fallback, and the end
-spheres and disks with the joint rules. A lane's pieces are a ``(LANES, NP)`` block (``NP`` the next power of
-two of ``PIECES``; columns past ``PIECES`` are masked), so the per-piece work stays in one thread's registers.
+spheres and disks with the joint rules. Each lane walks its segment's pieces in order in a loop, keeping the
+first of the smallest keys of each candidate kind (the portable ``argmin`` over the pieces), so only one piece's
+values are live at a time (a ``(lanes, pieces)`` block kept every piece in registers and spilled).
 
 Exactness: the kernel is compiled without contraction, every division is ``div_rn`` and every square root
 ``sqrt_rn`` (Triton's ``/`` and ``sqrt`` on float32 are approximate on CUDA), and the sample weights of the
@@ -80,12 +81,12 @@ def _combine(w0, w1, w2, w3, q0, q1, q2, q3):
 
 @triton.jit
 def _sample(index, x0, x1, x2, x3, y0, y1, y2, y3, z0, z1, z2, z3, r0, r1, r2, r3, PIECES: tl.constexpr):
-    """Ray-space samples ``(x, y, z, |r|)`` at sample indices ``index`` (``(1, NP)``) of every lane."""
-    w0, w1, w2, w3 = _weights(index.to(tl.float64), PIECES)
-    x = _combine(w0, w1, w2, w3, x0[:, None], x1[:, None], x2[:, None], x3[:, None])
-    y = _combine(w0, w1, w2, w3, y0[:, None], y1[:, None], y2[:, None], y3[:, None])
-    z = _combine(w0, w1, w2, w3, z0[:, None], z1[:, None], z2[:, None], z3[:, None])
-    r = _combine(w0, w1, w2, w3, r0[:, None], r1[:, None], r2[:, None], r3[:, None])
+    """Ray-space sample ``(x, y, z, |r|)`` number ``index`` (``0..PIECES``) of every lane's segment."""
+    w0, w1, w2, w3 = _weights(tl.zeros((1,), tl.float64) + index, PIECES)
+    x = _combine(w0, w1, w2, w3, x0, x1, x2, x3)
+    y = _combine(w0, w1, w2, w3, y0, y1, y2, y3)
+    z = _combine(w0, w1, w2, w3, z0, z1, z2, z3)
+    r = _combine(w0, w1, w2, w3, r0, r1, r2, r3)
     return x, y, z, tl.abs(r)
 
 
@@ -101,20 +102,6 @@ def _enter_slope(x, y, z, r, dx, dy, dz, dr):
 def _sphere_entry(x, y, z, r):
     depth = _diff_of_squares(tl.abs(r), _sqrt(x * x + y * y))
     return depth >= 0, z - _sqrt(tl.maximum(depth, 0.0))
-
-
-@triton.jit
-def _first_min(key, col, NP: tl.constexpr):
-    """``(min, index)`` of each row of ``key``: the first column holding the minimum (``jnp.argmin``)."""
-    best = tl.min(key, axis=1)
-    index = tl.min(tl.where(key == best[:, None], col, NP), axis=1)
-    return best, index
-
-
-@triton.jit
-def _take(values, col, index):
-    """``values[lane, index[lane]]``."""
-    return tl.sum(tl.where(col == index[:, None], values, 0.0), axis=1)
 
 
 @triton.jit
@@ -275,7 +262,6 @@ def curve_leaf(
     t_max,
     LANES: tl.constexpr,
     PIECES: tl.constexpr,
-    NP: tl.constexpr,
     ITERATIONS: tl.constexpr,
     APPROACH: tl.constexpr,
     TOLERANCE: tl.constexpr,
@@ -288,7 +274,7 @@ def curve_leaf(
     triangle test's answer (a curve leaf's triangle is degenerate: never hit).
 
     ``ray`` is :func:`curve_ray`'s tuple; the options are ``curve.CurveOptions`` (``PIECES``, ``ITERATIONS``,
-    ``APPROACH`` = ``approach_iterations``, ``TOLERANCE``; ``NP`` the next power of two of ``PIECES``) and
+    ``APPROACH`` = ``approach_iterations``, ``TOLERANCE``) and
     ``DISK``/``SPHERE`` say whether any segment has disk or sphere end caps."""
     ox, oy, oz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz, scale_t = ray
     row = curves_ptr + leaf * CURVE_WIDTH
@@ -297,7 +283,7 @@ def curve_leaf(
     if tl.max(is_curve.to(tl.int32), axis=0) > 0:
         curve_hit, curve_distance = _round_segment(
             row, is_curve, bits, ox, oy, oz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz, scale_t, t_min, t_max,
-            LANES, PIECES, NP, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE,
+            LANES, PIECES, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE,
         )  # fmt: skip
         hit = tl.where(is_curve, curve_hit, hit)
         distance = tl.where(is_curve, curve_distance, distance)
@@ -320,7 +306,7 @@ def _to_ray(row, k: tl.constexpr, mask, bx, by, bz, e1x, e1y, e1z, e2x, e2y, e2z
 @triton.jit
 def _round_segment(
     row, mask, bits, ox, oy, oz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz, scale_t, t_min, t_max,
-    LANES: tl.constexpr, PIECES: tl.constexpr, NP: tl.constexpr, ITERATIONS: tl.constexpr,
+    LANES: tl.constexpr, PIECES: tl.constexpr, ITERATIONS: tl.constexpr,
     APPROACH: tl.constexpr, TOLERANCE: tl.constexpr, DISK: tl.constexpr, SPHERE: tl.constexpr,
 ):  # fmt: skip
     H = 1.0 / PIECES
@@ -356,11 +342,6 @@ def _round_segment(
     cz0, cz1, cz2, cz3 = _power(z0, z1, z2, z3)
     cr0, cr1, cr2, cr3 = _power(r0, r1, r2, r3)
 
-    # The pieces: column i holds samples i - 1, i, i + 1 (piece i runs from sample i to sample i + 1).
-    col = tl.arange(0, NP)[None, :]
-    piece = col < PIECES
-    ax, ay, az, ar = _sample(col, x0, x1, x2, x3, y0, y1, y2, y3, z0, z1, z2, z3, r0, r1, r2, r3, PIECES)
-    nbx, nby, nbz, nbr = _sample(col + 1, x0, x1, x2, x3, y0, y1, y2, y3, z0, z1, z2, z3, r0, r1, r2, r3, PIECES)
     if ITERATIONS > 0:
         sx = x0 - 2.0 * x1 + x2
         sy = y0 - 2.0 * y1 + y2
@@ -371,94 +352,120 @@ def _round_segment(
         position = tl.maximum(_sqrt(sx * sx + sy * sy + sz * sz), _sqrt(tx * tx + ty * ty + tz * tz))
         radius = tl.maximum(tl.abs(r0 - 2.0 * r1 + r2), tl.abs(r1 - 2.0 * r2 + r3))
         grow = _div(0.75 * (position + radius), tl.full((LANES,), PIECES * PIECES, tl.float32))
-    else:
-        grow = tl.zeros((LANES,), tl.float32)
-
-    cone_ok, cone_t, cone_s = _cone(ax, ay, az, ar, nbx, nby, nbz, nbr)
-    cone_ok = cone_ok & piece
-    # Inner spheres at samples 1..PIECES-1 (column i), on the chords' surface only where they fill a kink.
-    px, py, pz, pr = _sample(col - 1, x0, x1, x2, x3, y0, y1, y2, y3, z0, z1, z2, z3, r0, r1, r2, r3, PIECES)
-    sphere_ok, sphere_t = _sphere_entry(ax, ay, az, ar)
-    before = _enter_slope(ax, ay, az, ar, ax - px, ay - py, az - pz, ar - pr)
-    after = _enter_slope(ax, ay, az, ar, nbx - ax, nby - ay, nbz - az, nbr - ar)
-    sphere_ok = sphere_ok & (before <= 0) & (after >= 0) & (col >= 1) & piece
-    if ITERATIONS > 0:
-        largest = tl.max(tl.where(piece, tl.maximum(ar, nbr), float("-inf")), axis=1)
+        # The margin: twice the largest sample radius plus the chord bound.
+        largest = tl.full((LANES,), float("-inf"), tl.float32)
+        for i in range(PIECES + 1):
+            w0, w1, w2, w3 = _weights(tl.zeros((1,), tl.float64) + i, PIECES)
+            largest = tl.maximum(largest, tl.abs(_combine(w0, w1, w2, w3, r0, r1, r2, r3)))
         margin = 2.0 * (largest + grow)
     else:
+        grow = tl.zeros((LANES,), tl.float32)
         margin = tl.zeros((LANES,), tl.float32)
-    low = (lo - margin)[:, None]
-    fcol = col.to(tl.float32)
-    cone_key = tl.where(cone_ok & (cone_t >= low) & (cone_t <= hi[:, None]), cone_t, float("inf"))
-    sphere_key = tl.where(sphere_ok & (sphere_t >= low) & (sphere_t <= hi[:, None]), sphere_t, float("inf"))
-    cone_best, cone_index = _first_min(cone_key, col, NP)
-    sphere_best, sphere_index = _first_min(sphere_key, col, NP)
+    low = lo - margin
+
+    # The pieces in order, each candidate kept where it is the first of the smallest key (``jnp.argmin``; the
+    # values of piece 0 where none is valid, as the portable gather reads them).
+    cone_best = tl.full((LANES,), float("inf"), tl.float32)
+    cone_t = cone_best
+    cone_u = tl.zeros((LANES,), tl.float32)
+    sphere_best = cone_best
+    sphere_t = cone_best
+    sphere_u = cone_u
+    touch_best = cone_best
+    t_entry = cone_best
+    u_entry = cone_u
+    touches = tl.zeros((LANES,), tl.int1)
+    px, py, pz, pr = _sample(0, x0, x1, x2, x3, y0, y1, y2, y3, z0, z1, z2, z3, r0, r1, r2, r3, PIECES)
+    ax, ay, az, ar = px, py, pz, pr
+    for i in range(PIECES):
+        fi = i * 1.0
+        bx, by, bz, br = _sample(i + 1, x0, x1, x2, x3, y0, y1, y2, y3, z0, z1, z2, z3, r0, r1, r2, r3, PIECES)
+        # The chord: the exact entry of the round cone from sample i to i + 1.
+        valid, t, s = _cone(ax, ay, az, ar, bx, by, bz, br)
+        key = tl.where(valid & (t >= low) & (t <= hi), t, float("inf"))
+        take = (key < cone_best) | (i == 0)
+        cone_best = tl.where(take, key, cone_best)
+        cone_t = tl.where(take, t, cone_t)
+        cone_u = tl.where(take, (fi + s) * H, cone_u)
+        if i > 0:
+            # The inner sphere at sample i, on the chords' surface only where it fills a kink.
+            ok, t = _sphere_entry(ax, ay, az, ar)
+            before = _enter_slope(ax, ay, az, ar, ax - px, ay - py, az - pz, ar - pr)
+            after = _enter_slope(ax, ay, az, ar, bx - ax, by - ay, bz - az, br - ar)
+            ok = ok & (before <= 0) & (after >= 0)
+            key = tl.where(ok & (t >= low) & (t <= hi), t, float("inf"))
+            take = (key < sphere_best) | (i == 1)
+            sphere_best = tl.where(take, key, sphere_best)
+            sphere_t = tl.where(take, t, sphere_t)
+            sphere_u = tl.where(take, fi * H, sphere_u)
+        if ITERATIONS > 0:
+            # Newton towards the ray's closest approach to the true curve near this piece, where its chord passes
+            # within the chord bound of the ray: whether the curve is touched, and an entry estimate.
+            p1x = bx - ax
+            p1y = by - ay
+            length2 = p1x * p1x + p1y * p1y
+            s = tl.minimum(tl.maximum(_div(-(ax * p1x + ay * p1y), tl.where(length2 > 0, length2, 1.0)), 0.0), 1.0)
+            reach = ar + s * (br - ar) + grow
+            qx = ax + s * p1x
+            qy = ay + s * p1y
+            near = qx * qx + qy * qy <= reach * reach
+            u = (fi + s) * H
+            a = tl.minimum(tl.maximum(u - H, 0.0), 1.0)
+            b = tl.minimum(tl.maximum(u + H, 0.0), 1.0)
+            for _ in range(APPROACH):
+                # Safeguarded Newton on h(u) = p . p' - r r' in the bracket [a, b] (bisection where it leaves it).
+                x, dx, ddx = _evaluate(cx0, cx1, cx2, cx3, u)
+                y, dy, ddy = _evaluate(cy0, cy1, cy2, cy3, u)
+                r, dr, ddr = _evaluate(cr0, cr1, cr2, cr3, u)
+                value = x * dx + y * dy - r * dr
+                slope = dx * dx + dy * dy + x * ddx + y * ddy - dr * dr - r * ddr
+                a = tl.where(value < 0, u, a)
+                b = tl.where(value > 0, u, b)
+                step = u - _div(value, tl.where(slope > 0, slope, 1.0))
+                good = (slope > 0) & (step >= a) & (step <= b)
+                u = tl.where(good, step, 0.5 * (a + b))
+            # The closest of the iterate and the bracket's ends (the first on ties).
+            x = _value(cx0, cx1, cx2, cx3, u)
+            y = _value(cy0, cy1, cy2, cy3, u)
+            r = _value(cr0, cr1, cr2, cr3, u)
+            best = x * x + y * y - r * r
+            u_close = u
+            x = _value(cx0, cx1, cx2, cx3, a)
+            y = _value(cy0, cy1, cy2, cy3, a)
+            r = _value(cr0, cr1, cr2, cr3, a)
+            gap = x * x + y * y - r * r
+            u_close = tl.where(gap < best, a, u_close)
+            best = tl.minimum(gap, best)
+            x = _value(cx0, cx1, cx2, cx3, b)
+            y = _value(cy0, cy1, cy2, cy3, b)
+            r = _value(cr0, cr1, cr2, cr3, b)
+            gap = x * x + y * y - r * r
+            u_close = tl.where(gap < best, b, u_close)
+            x, dx, _ = _evaluate(cx0, cx1, cx2, cx3, u_close)
+            y, dy, _ = _evaluate(cy0, cy1, cy2, cy3, u_close)
+            z, dz, _ = _evaluate(cz0, cz1, cz2, cz3, u_close)
+            r = _value(cr0, cr1, cr2, cr3, u_close)
+            depth = _diff_of_squares(tl.abs(r), _sqrt(x * x + y * y))
+            touching = near & (depth >= -2.0 * noise * (tl.abs(r) + noise))
+            across2 = dx * dx + dy * dy
+            shift = _div(-dz * _sqrt(tl.maximum(depth, 0.0)), _sqrt(tl.maximum(across2 * (across2 + dz * dz), 1e-30)))
+            u_try = tl.minimum(tl.maximum(u_close + tl.minimum(tl.maximum(shift, -H), H), 0.0), 1.0)
+            t_try = _entry_at(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, u_try)
+            key = tl.where(touching & (t_try >= low) & (t_try <= hi), t_try, float("inf"))
+            take = (key < touch_best) | (i == 0)
+            touch_best = tl.where(take, key, touch_best)
+            t_entry = tl.where(take, t_try, t_entry)
+            u_entry = tl.where(take, u_try, u_entry)
+            touches = touches | touching
+        px, py, pz, pr = ax, ay, az, ar
+        ax, ay, az, ar = bx, by, bz, br
     cone_wins = cone_best <= sphere_best  # the cones come first in the portable candidate order
     chord_ok = tl.minimum(cone_best, sphere_best) < float("inf")
-    chord_t = tl.where(cone_wins, _take(cone_t, col, cone_index), _take(sphere_t, col, sphere_index))
-    chord_u = tl.where(cone_wins, _take((fcol + cone_s) * H, col, cone_index), _take(fcol * H, col, sphere_index))
+    chord_t = tl.where(cone_wins, cone_t, sphere_t)
+    chord_u = tl.where(cone_wins, cone_u, sphere_u)
 
     if ITERATIONS > 0:
-        p1x = nbx - ax
-        p1y = nby - ay
-        length2 = p1x * p1x + p1y * p1y
-        s = tl.minimum(tl.maximum(_div(-(ax * p1x + ay * p1y), tl.where(length2 > 0, length2, 1.0)), 0.0), 1.0)
-        reach = ar + s * (nbr - ar) + grow[:, None]
-        qx = ax + s * p1x
-        qy = ay + s * p1y
-        near = (qx * qx + qy * qy <= reach * reach) & piece
-        u = (fcol + s) * H
-        a = tl.minimum(tl.maximum(u - H, 0.0), 1.0)
-        b = tl.minimum(tl.maximum(u + H, 0.0), 1.0)
-        ex0, ex1, ex2, ex3 = cx0[:, None], cx1[:, None], cx2[:, None], cx3[:, None]
-        ey0, ey1, ey2, ey3 = cy0[:, None], cy1[:, None], cy2[:, None], cy3[:, None]
-        ez0, ez1, ez2, ez3 = cz0[:, None], cz1[:, None], cz2[:, None], cz3[:, None]
-        er0, er1, er2, er3 = cr0[:, None], cr1[:, None], cr2[:, None], cr3[:, None]
-        for _ in range(APPROACH):
-            # Safeguarded Newton on h(u) = p . p' - r r' in the bracket [a, b] (bisection where it leaves it).
-            x, dx, ddx = _evaluate(ex0, ex1, ex2, ex3, u)
-            y, dy, ddy = _evaluate(ey0, ey1, ey2, ey3, u)
-            r, dr, ddr = _evaluate(er0, er1, er2, er3, u)
-            value = x * dx + y * dy - r * dr
-            slope = dx * dx + dy * dy + x * ddx + y * ddy - dr * dr - r * ddr
-            a = tl.where(value < 0, u, a)
-            b = tl.where(value > 0, u, b)
-            step = u - _div(value, tl.where(slope > 0, slope, 1.0))
-            good = (slope > 0) & (step >= a) & (step <= b)
-            u = tl.where(good, step, 0.5 * (a + b))
-        # The closest of the iterate and the bracket's ends.
-        x = _value(ex0, ex1, ex2, ex3, u)
-        y = _value(ey0, ey1, ey2, ey3, u)
-        r = _value(er0, er1, er2, er3, u)
-        best = x * x + y * y - r * r
-        u_close = u
-        x = _value(ex0, ex1, ex2, ex3, a)
-        y = _value(ey0, ey1, ey2, ey3, a)
-        r = _value(er0, er1, er2, er3, a)
-        gap = x * x + y * y - r * r
-        u_close = tl.where(gap < best, a, u_close)
-        best = tl.minimum(gap, best)
-        x = _value(ex0, ex1, ex2, ex3, b)
-        y = _value(ey0, ey1, ey2, ey3, b)
-        r = _value(er0, er1, er2, er3, b)
-        gap = x * x + y * y - r * r
-        u_close = tl.where(gap < best, b, u_close)
-        x, dx, _ = _evaluate(ex0, ex1, ex2, ex3, u_close)
-        y, dy, _ = _evaluate(ey0, ey1, ey2, ey3, u_close)
-        z, dz, _ = _evaluate(ez0, ez1, ez2, ez3, u_close)
-        r, _, _ = _evaluate(er0, er1, er2, er3, u_close)
-        depth = _diff_of_squares(tl.abs(r), _sqrt(x * x + y * y))
-        touching = near & (depth >= -2.0 * noise[:, None] * (tl.abs(r) + noise[:, None]))
-        across2 = dx * dx + dy * dy
-        shift = _div(-dz * _sqrt(tl.maximum(depth, 0.0)), _sqrt(tl.maximum(across2 * (across2 + dz * dz), 1e-30)))
-        u_entry = tl.minimum(tl.maximum(u_close + tl.minimum(tl.maximum(shift, -H), H), 0.0), 1.0)
-        t_entry = _entry_at(ex0, ex1, ex2, ex3, ey0, ey1, ey2, ey3, ez0, ez1, ez2, ez3, er0, er1, er2, er3, u_entry)
-        touch_key = tl.where(touching & (t_entry >= low) & (t_entry <= hi[:, None]), t_entry, float("inf"))
-        touch_best, touch_index = _first_min(touch_key, col, NP)
         touch_ok = touch_best < float("inf")
-        t_entry = _take(t_entry, col, touch_index)
-        u_entry = _take(u_entry, col, touch_index)
-        touches = tl.max(touching.to(tl.int32), axis=1) > 0
         found = chord_ok | touch_ok
         t_chord = _entry_at(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, chord_u)
         # Two starts refined side by side: the chord's hit and the entry through the closest approach.

@@ -758,7 +758,6 @@ def trace_kernel(
     COUNT: tl.constexpr = False,
     CURVES: tl.constexpr = False,
     PIECES: tl.constexpr = 1,
-    NP: tl.constexpr = 1,
     ITERATIONS: tl.constexpr = 0,
     APPROACH: tl.constexpr = 0,
     TOLERANCE: tl.constexpr = 0.0,
@@ -891,17 +890,17 @@ def trace_kernel(
                 if (votes & 1) != 0:
                     h0, t0 = _triangle(tris_ptr, -1 - c0, test0, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS)  # fmt: skip
                     if CURVES:
-                        h0, t0 = curve_leaf(curves_ptr, -1 - c0, test0, h0, t0, cray, t_min, distance, LANES, PIECES, NP, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE)  # fmt: skip
+                        h0, t0 = curve_leaf(curves_ptr, -1 - c0, test0, h0, t0, cray, t_min, distance, LANES, PIECES, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE)  # fmt: skip
                 if (votes & 2) != 0:
                     h1, t1 = _triangle(tris_ptr, -1 - c1, test1, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS)  # fmt: skip
                     if CURVES:
-                        h1, t1 = curve_leaf(curves_ptr, -1 - c1, test1, h1, t1, cray, t_min, distance, LANES, PIECES, NP, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE)  # fmt: skip
+                        h1, t1 = curve_leaf(curves_ptr, -1 - c1, test1, h1, t1, cray, t_min, distance, LANES, PIECES, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE)  # fmt: skip
             else:
                 h0, t0 = _triangle(tris_ptr, -1 - c0, test0, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS)  # fmt: skip
                 h1, t1 = _triangle(tris_ptr, -1 - c1, test1, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS)  # fmt: skip
                 if CURVES:
-                    h0, t0 = curve_leaf(curves_ptr, -1 - c0, test0, h0, t0, cray, t_min, distance, LANES, PIECES, NP, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE)  # fmt: skip
-                    h1, t1 = curve_leaf(curves_ptr, -1 - c1, test1, h1, t1, cray, t_min, distance, LANES, PIECES, NP, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE)  # fmt: skip
+                    h0, t0 = curve_leaf(curves_ptr, -1 - c0, test0, h0, t0, cray, t_min, distance, LANES, PIECES, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE)  # fmt: skip
+                    h1, t1 = curve_leaf(curves_ptr, -1 - c1, test1, h1, t1, cray, t_min, distance, LANES, PIECES, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE)  # fmt: skip
             second = t1 < t0
             best_t = tl.where(second, t1, t0)
             best_leaf = tl.where(second, -1 - c1, -1 - c0)
