@@ -171,7 +171,7 @@ def test_every_basis_and_cap(basis, count, caps, kernel_here):
     test), each end cap kind, with interval limits and disabled rays."""
     geometry = hair(seed=len(basis) + count, strands=3, basis=basis, count=count, end_caps=caps)
     rng = np.random.default_rng(count)
-    n = 64
+    n = 32
     t_min = np.where(rng.random(n) < 0.2, rng.uniform(4.0, 12.0, n), 0.0)
     t_max = np.where(rng.random(n) < 0.2, rng.uniform(4.0, 12.0, n), np.inf)
     ray_args = _rays(geometry, n, seed=count + 7, t_min=t_min, t_max=np.maximum(t_max, t_min), disabled=2)
@@ -213,7 +213,7 @@ def test_kinked_joints_with_triangles_any_hit_and_intervals(kernel_here):
     assert (kinds & (leaf >= 0)).sum() > 10 and (~kinds & (leaf >= 0)).sum() > 5
     check(structure, ray_args, any_hit=True)
     # The linear chain alone (one exact round cone per segment, no Newton) against the float64 reference.
-    ray_args = _rays(linear, 64, seed=11)
+    ray_args = _rays(linear, 32, seed=11)
     leaf, distance = check(rt.build_primitive_structure(linear), ray_args)
     check_reference(linear, ray_args, leaf, distance)
 

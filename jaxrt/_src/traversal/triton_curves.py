@@ -337,197 +337,219 @@ def _round_segment(
     radius_scale = tl.maximum(tl.maximum(tl.abs(r0), tl.abs(r1)), tl.maximum(tl.abs(r2), tl.abs(r3)))
     noise = 1.9073486328125e-06 * (position_scale + radius_scale)  # 16 eps: rounding of ray-space coordinates
 
-    cx0, cx1, cx2, cx3 = _power(x0, x1, x2, x3)
-    cy0, cy1, cy2, cy3 = _power(y0, y1, y2, y3)
-    cz0, cz1, cz2, cz3 = _power(z0, z1, z2, z3)
-    cr0, cr1, cr2, cr3 = _power(r0, r1, r2, r3)
+    # Culling, before the test: the ray passes outside the control points' hull in ray space grown by the
+    # largest radius (with the Newton tolerance and the rounding of the evaluations), or the hull lies
+    # beyond the interval. Every hit the test can accept (chord, Newton, fallback, cap) lies within that
+    # reach of the hull, so culled lanes are misses of the test too.
+    reach = radius_scale * (1.0 + 2.0 * TOLERANCE) + 8.0 * noise
+    min_x = tl.minimum(tl.minimum(x0, x1), tl.minimum(x2, x3))
+    max_x = tl.maximum(tl.maximum(x0, x1), tl.maximum(x2, x3))
+    min_y = tl.minimum(tl.minimum(y0, y1), tl.minimum(y2, y3))
+    max_y = tl.maximum(tl.maximum(y0, y1), tl.maximum(y2, y3))
+    min_z = tl.minimum(tl.minimum(z0, z1), tl.minimum(z2, z3))
+    max_z = tl.maximum(tl.maximum(z0, z1), tl.maximum(z2, z3))
+    outside = (min_x > reach) | (max_x < -reach) | (min_y > reach) | (max_y < -reach)
+    outside = outside | (min_z - reach > hi) | (max_z + reach < lo)
+    live = mask & (outside == 0)
+    hit = tl.zeros((LANES,), tl.int1)
+    distance = tl.full((LANES,), float("inf"), tl.float32)
+    if tl.max(live.to(tl.int32), axis=0) > 0:
+        cx0, cx1, cx2, cx3 = _power(x0, x1, x2, x3)
+        cy0, cy1, cy2, cy3 = _power(y0, y1, y2, y3)
+        cz0, cz1, cz2, cz3 = _power(z0, z1, z2, z3)
+        cr0, cr1, cr2, cr3 = _power(r0, r1, r2, r3)
 
-    if ITERATIONS > 0:
-        sx = x0 - 2.0 * x1 + x2
-        sy = y0 - 2.0 * y1 + y2
-        sz = z0 - 2.0 * z1 + z2
-        tx = x1 - 2.0 * x2 + x3
-        ty = y1 - 2.0 * y2 + y3
-        tz = z1 - 2.0 * z2 + z3
-        position = tl.maximum(_sqrt(sx * sx + sy * sy + sz * sz), _sqrt(tx * tx + ty * ty + tz * tz))
-        radius = tl.maximum(tl.abs(r0 - 2.0 * r1 + r2), tl.abs(r1 - 2.0 * r2 + r3))
-        grow = _div(0.75 * (position + radius), tl.full((LANES,), PIECES * PIECES, tl.float32))
-        # The margin: twice the largest sample radius plus the chord bound.
-        largest = tl.full((LANES,), float("-inf"), tl.float32)
-        for i in range(PIECES + 1):
-            w0, w1, w2, w3 = _weights(tl.zeros((1,), tl.float64) + i, PIECES)
-            largest = tl.maximum(largest, tl.abs(_combine(w0, w1, w2, w3, r0, r1, r2, r3)))
-        margin = 2.0 * (largest + grow)
-    else:
-        grow = tl.zeros((LANES,), tl.float32)
-        margin = tl.zeros((LANES,), tl.float32)
-    low = lo - margin
-
-    # The pieces in order, each candidate kept where it is the first of the smallest key (``jnp.argmin``; the
-    # values of piece 0 where none is valid, as the portable gather reads them).
-    cone_best = tl.full((LANES,), float("inf"), tl.float32)
-    cone_t = cone_best
-    cone_u = tl.zeros((LANES,), tl.float32)
-    sphere_best = cone_best
-    sphere_t = cone_best
-    sphere_u = cone_u
-    touch_best = cone_best
-    t_entry = cone_best
-    u_entry = cone_u
-    touches = tl.zeros((LANES,), tl.int1)
-    px, py, pz, pr = _sample(0, x0, x1, x2, x3, y0, y1, y2, y3, z0, z1, z2, z3, r0, r1, r2, r3, PIECES)
-    ax, ay, az, ar = px, py, pz, pr
-    for i in range(PIECES):
-        fi = i * 1.0
-        bx, by, bz, br = _sample(i + 1, x0, x1, x2, x3, y0, y1, y2, y3, z0, z1, z2, z3, r0, r1, r2, r3, PIECES)
-        # The chord: the exact entry of the round cone from sample i to i + 1.
-        valid, t, s = _cone(ax, ay, az, ar, bx, by, bz, br)
-        key = tl.where(valid & (t >= low) & (t <= hi), t, float("inf"))
-        take = (key < cone_best) | (i == 0)
-        cone_best = tl.where(take, key, cone_best)
-        cone_t = tl.where(take, t, cone_t)
-        cone_u = tl.where(take, (fi + s) * H, cone_u)
-        if i > 0:
-            # The inner sphere at sample i, on the chords' surface only where it fills a kink.
-            ok, t = _sphere_entry(ax, ay, az, ar)
-            before = _enter_slope(ax, ay, az, ar, ax - px, ay - py, az - pz, ar - pr)
-            after = _enter_slope(ax, ay, az, ar, bx - ax, by - ay, bz - az, br - ar)
-            ok = ok & (before <= 0) & (after >= 0)
-            key = tl.where(ok & (t >= low) & (t <= hi), t, float("inf"))
-            take = (key < sphere_best) | (i == 1)
-            sphere_best = tl.where(take, key, sphere_best)
-            sphere_t = tl.where(take, t, sphere_t)
-            sphere_u = tl.where(take, fi * H, sphere_u)
         if ITERATIONS > 0:
-            # Newton towards the ray's closest approach to the true curve near this piece, where its chord passes
-            # within the chord bound of the ray: whether the curve is touched, and an entry estimate.
-            p1x = bx - ax
-            p1y = by - ay
-            length2 = p1x * p1x + p1y * p1y
-            s = tl.minimum(tl.maximum(_div(-(ax * p1x + ay * p1y), tl.where(length2 > 0, length2, 1.0)), 0.0), 1.0)
-            reach = ar + s * (br - ar) + grow
-            qx = ax + s * p1x
-            qy = ay + s * p1y
-            near = qx * qx + qy * qy <= reach * reach
-            u = (fi + s) * H
-            a = tl.minimum(tl.maximum(u - H, 0.0), 1.0)
-            b = tl.minimum(tl.maximum(u + H, 0.0), 1.0)
-            for _ in range(APPROACH):
-                # Safeguarded Newton on h(u) = p . p' - r r' in the bracket [a, b] (bisection where it leaves it).
-                x, dx, ddx = _evaluate(cx0, cx1, cx2, cx3, u)
-                y, dy, ddy = _evaluate(cy0, cy1, cy2, cy3, u)
-                r, dr, ddr = _evaluate(cr0, cr1, cr2, cr3, u)
-                value = x * dx + y * dy - r * dr
-                slope = dx * dx + dy * dy + x * ddx + y * ddy - dr * dr - r * ddr
-                a = tl.where(value < 0, u, a)
-                b = tl.where(value > 0, u, b)
-                step = u - _div(value, tl.where(slope > 0, slope, 1.0))
-                good = (slope > 0) & (step >= a) & (step <= b)
-                u = tl.where(good, step, 0.5 * (a + b))
-            # The closest of the iterate and the bracket's ends (the first on ties).
-            x = _value(cx0, cx1, cx2, cx3, u)
-            y = _value(cy0, cy1, cy2, cy3, u)
-            r = _value(cr0, cr1, cr2, cr3, u)
-            best = x * x + y * y - r * r
-            u_close = u
-            x = _value(cx0, cx1, cx2, cx3, a)
-            y = _value(cy0, cy1, cy2, cy3, a)
-            r = _value(cr0, cr1, cr2, cr3, a)
-            gap = x * x + y * y - r * r
-            u_close = tl.where(gap < best, a, u_close)
-            best = tl.minimum(gap, best)
-            x = _value(cx0, cx1, cx2, cx3, b)
-            y = _value(cy0, cy1, cy2, cy3, b)
-            r = _value(cr0, cr1, cr2, cr3, b)
-            gap = x * x + y * y - r * r
-            u_close = tl.where(gap < best, b, u_close)
-            x, dx, _ = _evaluate(cx0, cx1, cx2, cx3, u_close)
-            y, dy, _ = _evaluate(cy0, cy1, cy2, cy3, u_close)
-            z, dz, _ = _evaluate(cz0, cz1, cz2, cz3, u_close)
-            r = _value(cr0, cr1, cr2, cr3, u_close)
-            depth = _diff_of_squares(tl.abs(r), _sqrt(x * x + y * y))
-            touching = near & (depth >= -2.0 * noise * (tl.abs(r) + noise))
-            across2 = dx * dx + dy * dy
-            shift = _div(-dz * _sqrt(tl.maximum(depth, 0.0)), _sqrt(tl.maximum(across2 * (across2 + dz * dz), 1e-30)))
-            u_try = tl.minimum(tl.maximum(u_close + tl.minimum(tl.maximum(shift, -H), H), 0.0), 1.0)
-            t_try = _entry_at(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, u_try)
-            key = tl.where(touching & (t_try >= low) & (t_try <= hi), t_try, float("inf"))
-            take = (key < touch_best) | (i == 0)
-            touch_best = tl.where(take, key, touch_best)
-            t_entry = tl.where(take, t_try, t_entry)
-            u_entry = tl.where(take, u_try, u_entry)
-            touches = touches | touching
-        px, py, pz, pr = ax, ay, az, ar
-        ax, ay, az, ar = bx, by, bz, br
-    cone_wins = cone_best <= sphere_best  # the cones come first in the portable candidate order
-    chord_ok = tl.minimum(cone_best, sphere_best) < float("inf")
-    chord_t = tl.where(cone_wins, cone_t, sphere_t)
-    chord_u = tl.where(cone_wins, cone_u, sphere_u)
+            sx = x0 - 2.0 * x1 + x2
+            sy = y0 - 2.0 * y1 + y2
+            sz = z0 - 2.0 * z1 + z2
+            tx = x1 - 2.0 * x2 + x3
+            ty = y1 - 2.0 * y2 + y3
+            tz = z1 - 2.0 * z2 + z3
+            position = tl.maximum(_sqrt(sx * sx + sy * sy + sz * sz), _sqrt(tx * tx + ty * ty + tz * tz))
+            radius = tl.maximum(tl.abs(r0 - 2.0 * r1 + r2), tl.abs(r1 - 2.0 * r2 + r3))
+            grow = _div(0.75 * (position + radius), tl.full((LANES,), PIECES * PIECES, tl.float32))
+            # The margin: twice the largest sample radius plus the chord bound.
+            largest = tl.full((LANES,), float("-inf"), tl.float32)
+            for i in range(PIECES + 1):
+                w0, w1, w2, w3 = _weights(tl.zeros((1,), tl.float64) + i, PIECES)
+                largest = tl.maximum(largest, tl.abs(_combine(w0, w1, w2, w3, r0, r1, r2, r3)))
+            margin = 2.0 * (largest + grow)
+        else:
+            grow = tl.zeros((LANES,), tl.float32)
+            margin = tl.zeros((LANES,), tl.float32)
+        low = lo - margin
 
-    if ITERATIONS > 0:
-        touch_ok = touch_best < float("inf")
-        found = chord_ok | touch_ok
-        t_chord = _entry_at(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, chord_u)
-        # Two starts refined side by side: the chord's hit and the entry through the closest approach.
-        u_a = tl.where(chord_ok, chord_u, u_entry)
-        t_a = tl.where(chord_ok, t_chord, t_entry)
-        u_a, t_a = _newton(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, u_a, t_a, ITERATIONS, H)  # fmt: skip
-        u_b, t_b = _newton(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, u_entry, t_entry, ITERATIONS, H)  # fmt: skip
-        conv_a, valid_a = _accept(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, u_a, t_a, found, noise, lo, hi, TOLERANCE)  # fmt: skip
-        conv_b, valid_b = _accept(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, u_b, t_b, found, noise, lo, hi, TOLERANCE)  # fmt: skip
-        key_a = tl.where(valid_a, t_a, float("inf"))
-        key_b = tl.where(valid_b, t_b, float("inf"))
-        second = key_b < key_a
-        tube = tl.where(second, valid_b, valid_a)
-        t = tl.where(second, t_b, t_a)
-        u = tl.where(second, u_b, u_a)
-        # Newton failed but the curve is touched: the chord's hit (not where Newton is leaving the segment).
-        leaving = (u <= 0) | (u >= 1)
-        fallback = chord_ok & touches & ((conv_a | conv_b) == 0) & (leaving == 0) & (chord_t >= lo) & (chord_t <= hi)
-        tube_ok = tube | fallback
-        tube_t = tl.where(tube, t, chord_t)
-        tube_u = tl.minimum(tl.maximum(tl.where(tube, u, chord_u), 0.0), 1.0)
-    else:
-        tube_ok = chord_ok & (chord_t >= lo)
-        tube_t = chord_t
-        tube_u = chord_u
+        # The pieces in order, each candidate kept where it is the first of the smallest key (``jnp.argmin``; the
+        # values of piece 0 where none is valid, as the portable gather reads them).
+        cone_best = tl.full((LANES,), float("inf"), tl.float32)
+        cone_t = cone_best
+        cone_u = tl.zeros((LANES,), tl.float32)
+        sphere_best = cone_best
+        sphere_t = cone_best
+        sphere_u = cone_u
+        touch_best = cone_best
+        t_entry = cone_best
+        u_entry = cone_u
+        touches = tl.zeros((LANES,), tl.int1)
+        px, py, pz, pr = _sample(0, x0, x1, x2, x3, y0, y1, y2, y3, z0, z1, z2, z3, r0, r1, r2, r3, PIECES)
+        ax, ay, az, ar = px, py, pz, pr
+        for i in range(PIECES):
+            fi = i * 1.0
+            bx, by, bz, br = _sample(i + 1, x0, x1, x2, x3, y0, y1, y2, y3, z0, z1, z2, z3, r0, r1, r2, r3, PIECES)
+            # The chord: the exact entry of the round cone from sample i to i + 1.
+            valid, t, s = _cone(ax, ay, az, ar, bx, by, bz, br)
+            key = tl.where(valid & (t >= low) & (t <= hi), t, float("inf"))
+            take = (key < cone_best) | (i == 0)
+            cone_best = tl.where(take, key, cone_best)
+            cone_t = tl.where(take, t, cone_t)
+            cone_u = tl.where(take, (fi + s) * H, cone_u)
+            if i > 0:
+                # The inner sphere at sample i, on the chords' surface only where it fills a kink.
+                ok, t = _sphere_entry(ax, ay, az, ar)
+                before = _enter_slope(ax, ay, az, ar, ax - px, ay - py, az - pz, ar - pr)
+                after = _enter_slope(ax, ay, az, ar, bx - ax, by - ay, bz - az, br - ar)
+                ok = ok & (before <= 0) & (after >= 0)
+                key = tl.where(ok & (t >= low) & (t <= hi), t, float("inf"))
+                take = (key < sphere_best) | (i == 1)
+                sphere_best = tl.where(take, key, sphere_best)
+                sphere_t = tl.where(take, t, sphere_t)
+                sphere_u = tl.where(take, fi * H, sphere_u)
+            if ITERATIONS > 0:
+                # Newton towards the ray's closest approach to the true curve near this piece, where its chord passes
+                # within the chord bound of the ray: whether the curve is touched, and an entry estimate.
+                p1x = bx - ax
+                p1y = by - ay
+                length2 = p1x * p1x + p1y * p1y
+                s = tl.minimum(tl.maximum(_div(-(ax * p1x + ay * p1y), tl.where(length2 > 0, length2, 1.0)), 0.0), 1.0)
+                reach = ar + s * (br - ar) + grow
+                qx = ax + s * p1x
+                qy = ay + s * p1y
+                near = qx * qx + qy * qy <= reach * reach
+                u = (fi + s) * H
+                a = tl.minimum(tl.maximum(u - H, 0.0), 1.0)
+                b = tl.minimum(tl.maximum(u + H, 0.0), 1.0)
+                for _ in range(APPROACH):
+                    # Safeguarded Newton on h(u) = p . p' - r r' in the bracket [a, b] (bisection where it leaves it).
+                    x, dx, ddx = _evaluate(cx0, cx1, cx2, cx3, u)
+                    y, dy, ddy = _evaluate(cy0, cy1, cy2, cy3, u)
+                    r, dr, ddr = _evaluate(cr0, cr1, cr2, cr3, u)
+                    value = x * dx + y * dy - r * dr
+                    slope = dx * dx + dy * dy + x * ddx + y * ddy - dr * dr - r * ddr
+                    a = tl.where(value < 0, u, a)
+                    b = tl.where(value > 0, u, b)
+                    step = u - _div(value, tl.where(slope > 0, slope, 1.0))
+                    good = (slope > 0) & (step >= a) & (step <= b)
+                    u = tl.where(good, step, 0.5 * (a + b))
+                # The closest of the iterate and the bracket's ends (the first on ties).
+                x = _value(cx0, cx1, cx2, cx3, u)
+                y = _value(cy0, cy1, cy2, cy3, u)
+                r = _value(cr0, cr1, cr2, cr3, u)
+                best = x * x + y * y - r * r
+                u_close = u
+                x = _value(cx0, cx1, cx2, cx3, a)
+                y = _value(cy0, cy1, cy2, cy3, a)
+                r = _value(cr0, cr1, cr2, cr3, a)
+                gap = x * x + y * y - r * r
+                u_close = tl.where(gap < best, a, u_close)
+                best = tl.minimum(gap, best)
+                x = _value(cx0, cx1, cx2, cx3, b)
+                y = _value(cy0, cy1, cy2, cy3, b)
+                r = _value(cr0, cr1, cr2, cr3, b)
+                gap = x * x + y * y - r * r
+                u_close = tl.where(gap < best, b, u_close)
+                x, dx, _ = _evaluate(cx0, cx1, cx2, cx3, u_close)
+                y, dy, _ = _evaluate(cy0, cy1, cy2, cy3, u_close)
+                z, dz, _ = _evaluate(cz0, cz1, cz2, cz3, u_close)
+                r = _value(cr0, cr1, cr2, cr3, u_close)
+                depth = _diff_of_squares(tl.abs(r), _sqrt(x * x + y * y))
+                touching = near & (depth >= -2.0 * noise * (tl.abs(r) + noise))
+                across2 = dx * dx + dy * dy
+                shift = _div(
+                    -dz * _sqrt(tl.maximum(depth, 0.0)), _sqrt(tl.maximum(across2 * (across2 + dz * dz), 1e-30))
+                )
+                u_try = tl.minimum(tl.maximum(u_close + tl.minimum(tl.maximum(shift, -H), H), 0.0), 1.0)
+                t_try = _entry_at(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, u_try)
+                key = tl.where(touching & (t_try >= low) & (t_try <= hi), t_try, float("inf"))
+                take = (key < touch_best) | (i == 0)
+                touch_best = tl.where(take, key, touch_best)
+                t_entry = tl.where(take, t_try, t_entry)
+                u_entry = tl.where(take, u_try, u_entry)
+                touches = touches | touching
+            px, py, pz, pr = ax, ay, az, ar
+            ax, ay, az, ar = bx, by, bz, br
+        cone_wins = cone_best <= sphere_best  # the cones come first in the portable candidate order
+        chord_ok = tl.minimum(cone_best, sphere_best) < float("inf")
+        chord_t = tl.where(cone_wins, cone_t, sphere_t)
+        chord_u = tl.where(cone_wins, cone_u, sphere_u)
 
-    # The end spheres: a cap, or the fill of a kink at a joint (drawn by the segment that starts there).
-    dsx = 3.0 * (x1 - x0)
-    dsy = 3.0 * (y1 - y0)
-    dsz = 3.0 * (z1 - z0)
-    dsr = 3.0 * (r1 - r0)
-    dex = 3.0 * (x3 - x2)
-    dey = 3.0 * (y3 - y2)
-    dez = 3.0 * (z3 - z2)
-    der = 3.0 * (r3 - r2)
-    start_ok, start_t = _sphere_entry(x0, y0, z0, r0)
-    end_ok, end_t = _sphere_entry(x3, y3, z3, r3)
-    start_surface = _enter_slope(x0, y0, z0, r0, dsx, dsy, dsz, dsr) >= 0
-    end_surface = _enter_slope(x3, y3, z3, r3, dex, dey, dez, der) <= 0
-    joint_open = _enter_slope(x0, y0, z0, r0, pvx, pvy, pvz, pvr) <= 0
-    start_accept = has_previous & joint_open
-    end_accept = tl.zeros((LANES,), tl.int1)
-    if SPHERE:
-        start_accept = start_accept | ((has_previous == 0) & (caps == 2))
-        end_accept = end_accept | ((has_next == 0) & (caps == 2))
-    start_ok = start_ok & start_accept & start_surface
-    end_ok = end_ok & end_accept & end_surface
-    best_ok = tl.zeros((LANES,), tl.int1)
-    best_t = tl.full((LANES,), float("inf"), tl.float32)
-    best_u = tl.zeros((LANES,), tl.float32)
-    best_ok, best_t, best_u = _nearer(tube_ok, tube_t, tube_u, best_ok, best_t, best_u, lo, hi)
-    best_ok, best_t, best_u = _nearer(start_ok, start_t, 0.0, best_ok, best_t, best_u, lo, hi)
-    best_ok, best_t, best_u = _nearer(end_ok, end_t, 1.0, best_ok, best_t, best_u, lo, hi)
-    if DISK:
-        fx = x3 - x0
-        fy = y3 - y0
-        fz = z3 - z0
-        disk_ok, disk_t = _disk(x0, y0, z0, r0, dsx, dsy, dsz, dsr, fx, fy, fz, 1.0)
-        disk_ok = disk_ok & (has_previous == 0) & (caps == 1)
-        best_ok, best_t, best_u = _nearer(disk_ok, disk_t, 0.0, best_ok, best_t, best_u, lo, hi)
-        disk_ok, disk_t = _disk(x3, y3, z3, r3, dex, dey, dez, der, fx, fy, fz, -1.0)
-        disk_ok = disk_ok & (has_next == 0) & (caps == 1)
-        best_ok, best_t, best_u = _nearer(disk_ok, disk_t, 1.0, best_ok, best_t, best_u, lo, hi)
-    hit = mask & best_ok
-    return hit, tl.where(hit, best_t * scale_t, float("inf"))
+        if ITERATIONS > 0:
+            touch_ok = touch_best < float("inf")
+            found = chord_ok | touch_ok
+            t_chord = _entry_at(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, chord_u)
+            # Two starts refined side by side: the chord's hit and the entry through the closest approach.
+            u_a = tl.where(chord_ok, chord_u, u_entry)
+            t_a = tl.where(chord_ok, t_chord, t_entry)
+            u_a, t_a = _newton(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, u_a, t_a, ITERATIONS, H)  # fmt: skip
+            u_b, t_b = _newton(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, u_entry, t_entry, ITERATIONS, H)  # fmt: skip
+            conv_a, valid_a = _accept(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, u_a, t_a, found, noise, lo, hi, TOLERANCE)  # fmt: skip
+            conv_b, valid_b = _accept(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, u_b, t_b, found, noise, lo, hi, TOLERANCE)  # fmt: skip
+            key_a = tl.where(valid_a, t_a, float("inf"))
+            key_b = tl.where(valid_b, t_b, float("inf"))
+            second = key_b < key_a
+            tube = tl.where(second, valid_b, valid_a)
+            t = tl.where(second, t_b, t_a)
+            u = tl.where(second, u_b, u_a)
+            # Newton failed but the curve is touched: the chord's hit (not where Newton is leaving the segment).
+            leaving = (u <= 0) | (u >= 1)
+            fallback = (
+                chord_ok & touches & ((conv_a | conv_b) == 0) & (leaving == 0) & (chord_t >= lo) & (chord_t <= hi)
+            )
+            tube_ok = tube | fallback
+            tube_t = tl.where(tube, t, chord_t)
+            tube_u = tl.minimum(tl.maximum(tl.where(tube, u, chord_u), 0.0), 1.0)
+        else:
+            tube_ok = chord_ok & (chord_t >= lo)
+            tube_t = chord_t
+            tube_u = chord_u
+
+        # The end spheres: a cap, or the fill of a kink at a joint (drawn by the segment that starts there).
+        dsx = 3.0 * (x1 - x0)
+        dsy = 3.0 * (y1 - y0)
+        dsz = 3.0 * (z1 - z0)
+        dsr = 3.0 * (r1 - r0)
+        dex = 3.0 * (x3 - x2)
+        dey = 3.0 * (y3 - y2)
+        dez = 3.0 * (z3 - z2)
+        der = 3.0 * (r3 - r2)
+        start_ok, start_t = _sphere_entry(x0, y0, z0, r0)
+        end_ok, end_t = _sphere_entry(x3, y3, z3, r3)
+        start_surface = _enter_slope(x0, y0, z0, r0, dsx, dsy, dsz, dsr) >= 0
+        end_surface = _enter_slope(x3, y3, z3, r3, dex, dey, dez, der) <= 0
+        joint_open = _enter_slope(x0, y0, z0, r0, pvx, pvy, pvz, pvr) <= 0
+        start_accept = has_previous & joint_open
+        end_accept = tl.zeros((LANES,), tl.int1)
+        if SPHERE:
+            start_accept = start_accept | ((has_previous == 0) & (caps == 2))
+            end_accept = end_accept | ((has_next == 0) & (caps == 2))
+        start_ok = start_ok & start_accept & start_surface
+        end_ok = end_ok & end_accept & end_surface
+        best_ok = tl.zeros((LANES,), tl.int1)
+        best_t = tl.full((LANES,), float("inf"), tl.float32)
+        best_u = tl.zeros((LANES,), tl.float32)
+        best_ok, best_t, best_u = _nearer(tube_ok, tube_t, tube_u, best_ok, best_t, best_u, lo, hi)
+        best_ok, best_t, best_u = _nearer(start_ok, start_t, 0.0, best_ok, best_t, best_u, lo, hi)
+        best_ok, best_t, best_u = _nearer(end_ok, end_t, 1.0, best_ok, best_t, best_u, lo, hi)
+        if DISK:
+            fx = x3 - x0
+            fy = y3 - y0
+            fz = z3 - z0
+            disk_ok, disk_t = _disk(x0, y0, z0, r0, dsx, dsy, dsz, dsr, fx, fy, fz, 1.0)
+            disk_ok = disk_ok & (has_previous == 0) & (caps == 1)
+            best_ok, best_t, best_u = _nearer(disk_ok, disk_t, 0.0, best_ok, best_t, best_u, lo, hi)
+            disk_ok, disk_t = _disk(x3, y3, z3, r3, dex, dey, dez, der, fx, fy, fz, -1.0)
+            disk_ok = disk_ok & (has_next == 0) & (caps == 1)
+            best_ok, best_t, best_u = _nearer(disk_ok, disk_t, 1.0, best_ok, best_t, best_u, lo, hi)
+        hit = live & best_ok
+        distance = tl.where(hit, best_t * scale_t, float("inf"))
+    return hit, distance
