@@ -7,7 +7,8 @@ instance chain. :func:`trace` is the same for a primitive structure.
 
 The intersector picks this path (``backend="auto"`` or ``"gpu"``) when :func:`unavailable_reason` returns
 ``None``: the default JAX backend is a GPU, Triton and jax-triton import (``pip install jaxrt[gpu]``), geometry
-is float32, and the intersector asks only for what the kernel covers (triangles, nearest and any hit, cull
+is float32, and the intersector asks only for what the kernel covers (triangles, round curves of a static
+primitive structure (:mod:`jaxrt._src.traversal.triton_curves`; :func:`curve_leaves`), nearest and any hit, cull
 modes and windings, ray intervals, masks and disabled rays, several geometries per structure, instances over
 any number of levels, keyframe motion of triangles and instances at each ray's time, the ``K`` nearest hits
 of ``max_hits`` with each hit's instance chain, counting every hit, and the tags of
