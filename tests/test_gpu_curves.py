@@ -220,7 +220,8 @@ def test_kinked_joints_with_triangles_any_hit_and_intervals(kernel_here):
 
 @kernel_test
 def test_options_and_hit_lists(kernel_here):
-    """Static curve options (pieces that are not a power of two, no Newton steps) and the K nearest hits."""
+    """Static curve options (pieces that are not a power of two, no Newton steps), the K nearest hits and
+    counting every hit."""
     geometry = hair(seed=8, strands=3, end_caps="disk")
     ray_args = _rays(geometry, 32, seed=9)
     for options in (rt.CurveOptions(pieces=5, iterations=2, approach_iterations=1), rt.CurveOptions(iterations=0)):
@@ -252,6 +253,14 @@ def test_options_and_hit_lists(kernel_here):
     np.testing.assert_array_equal(np.asarray(got.hits.total), np.asarray(want.hits.total))
     np.testing.assert_allclose(np.asarray(got.hits.distance), np.asarray(want.hits.distance), rtol=RTOL, atol=0)
     assert (np.asarray(got.hits.total) > 1).sum() > 3
+    # Counting every hit.
+    got = gpu.trace_scene(view.traversal, view.layout, *args, any_hit=False, cull=0, curves=curves, count_all=True)
+    fn = functools.partial(
+        drivers.traverse, view.traversal, view.layout, tester, any_hit=False, max_hits=0, count_all=True
+    )
+    want = jax.jit(jax.vmap(fn))(*args)
+    np.testing.assert_array_equal(np.asarray(got.hits.total), np.asarray(want.hits.total))
+    assert (np.asarray(got.hits.total) > 3).sum() > 3
 
 
 @kernel_test
