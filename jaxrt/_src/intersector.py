@@ -377,7 +377,8 @@ def _check_geometry(intersector: Intersector, structure: Any) -> None:
     if intersector.backend in ("gpu", "cpu"):
         infos = tuple(g for s in prims for g in s.geometry_info)
         motion = bool(getattr(structure, "has_instance_motion", False))
-        reason = pipeline.kernel_declines(intersector, infos, intersector.backend, motion)
+        levels = 0 if len(prims) == 1 and prims[0] is structure else 1
+        reason = pipeline.kernel_declines(intersector, infos, intersector.backend, motion, levels)
         if reason:
             raise ValueError(f"Intersector: backend={intersector.backend!r} cannot run: {reason}")
     _check_user_functions(intersector, prims)

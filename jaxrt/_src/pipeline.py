@@ -84,22 +84,40 @@ class SanitizedRays:
         self.time = jnp.where(on, rays.time, 0.0)  # read only by scenes with keyframe motion
 
 
-def kernel_declines(intersector: Any, geometry_info: tuple, backend: str = "gpu", motion: bool = False) -> str | None:
+def kernel_declines(
+    intersector: Any, geometry_info: tuple, backend: str = "gpu", motion: bool = False, levels: int = 0
+) -> str | None:
     """Why the compiled traversal of ``backend`` (``"gpu"``: the GPU kernel, ``"cpu"``: the CPU traversal)
     does not cover a scene of these geometries with this intersector (``None``: it does); ``motion`` says
-    that the scene has keyframe motion (primitive motion is also read from the geometries).
+    that the scene has keyframe motion (primitive motion is also read from the geometries), ``levels`` how
+    many instance levels it has.
 
     The one place that decides their coverage (with :func:`jaxrt._src.traversal.gpu.unavailable_reason` and
     :func:`jaxrt._src.traversal.cpu.unavailable_reason` for the machine and the tags). Both cover the same
-    cases except keyframe motion, hit lists (``max_hits`` and counting) and bounding boxes whose functions are
-    the built-in ``rt.intersection_functions`` (recognised by identity), which only the GPU kernel traces.
-    Declined scenes take the portable traversal: curves, user intersection functions and filters call JAX
-    code per candidate, and the CPU loop keeps no hit lists.
+    cases except keyframe motion, hit lists (``max_hits`` and counting), round curves in a static primitive
+    structure and bounding boxes whose functions are the built-in ``rt.intersection_functions`` (recognised by
+    identity), which only the GPU kernel traces (curves and boxes in one scene are not combined there).
+    Declined scenes take the portable traversal: flat curves, curves below instances or with motion, user
+    intersection functions and filters call JAX code per candidate, and the CPU loop keeps no hit lists.
     """
+    from jaxrt._src.curves import CurveType
+
     name = "CPU traversal" if backend == "cpu" else "GPU kernel"
     kinds = {g.kind for g in geometry_info}
     if "curve" in kinds:
-        return f"curves are not covered by the {name}"
+        if backend == "cpu":
+            return f"curves are not covered by the {name}"
+        curve_types = {g.curve.curve_type for g in geometry_info if g.curve is not None}
+        if intersector.curve_type is not None:
+            curve_types = {intersector.curve_type}
+        if CurveType.FLAT in curve_types:
+            return f"flat curves are not covered by the {name}"
+        if levels:
+            return f"curves below instances are not covered by the {name}"
+        if motion or any(g.motion for g in geometry_info):
+            return f"curves in a structure with keyframe motion are not covered by the {name}"
+        if "bounding_box" in kinds:
+            return f"curves and bounding-box geometry in one structure are not covered by the {name}"
     if "bounding_box" in kinds:
         reason = _analytic_declines(intersector, backend, motion or any(g.motion for g in geometry_info))
         if reason is not None:
@@ -198,7 +216,7 @@ def trace(intersector: Any, view: SceneView, rays: SanitizedRays, host: Any = No
     """Run the traversal the intersector and scene call for (a compiled one where it covers them). ``host``:
     the addresses the CPU traversal may read the scene from (:func:`jaxrt._src.traversal.cpu.host_scene`)."""
     backend = resolve_backend(intersector)
-    covered = kernel_declines(intersector, view.geometry_info, backend, view.layout.motion) is None
+    covered = kernel_declines(intersector, view.geometry_info, backend, view.layout.motion, view.layout.levels) is None
     if backend == "cpu":  # the CPU loop is compiled per float type: geometry and rays must share one
         covered = covered and view.traversal.node_lower.dtype == rays.origin.dtype
     if backend != "portable" and covered:
@@ -208,6 +226,8 @@ def trace(intersector: Any, view: SceneView, rays: SanitizedRays, host: Any = No
         moving = {}  # keyframe motion (GPU kernel only): each ray's time and the triangle keyframes
         if view.layout.motion:
             moving = dict(time=detached(rays.time), leaf_motion=gpu.leaf_motion(view))
+        if backend == "gpu" and "curve" in view.kinds:  # round curves: their rows and the static test options
+            moving.update(curves=gpu.curve_leaves(view, leaf_tests.curve_configuration(intersector, view)))
         if backend == "gpu" and (intersector.max_hits is not None or intersector.counts_all):
             moving.update(max_hits=0 if intersector.counts_all else intersector.max_hits)
             moving.update(count_all=intersector.counts_all)

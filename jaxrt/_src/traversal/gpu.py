@@ -9,11 +9,12 @@ The intersector picks this path (``backend="auto"`` or ``"gpu"``) when :func:`un
 ``None``: the default JAX backend is a GPU, Triton and jax-triton import (``pip install jaxrt[gpu]``), geometry
 is float32, and the intersector asks only for what the kernel covers (triangles, bounding boxes whose
 intersection functions are the built-in sphere, disk and capped cylinder (:func:`analytic_leaves`; not with
-keyframe motion), nearest and any hit, cull modes and windings, ray intervals, masks and disabled rays,
-several geometries per structure, instances over any number of levels, keyframe motion of triangles and
-instances at each ray's time, the ``K`` nearest hits of ``max_hits`` with each hit's instance chain, counting
-every hit, and the tags of :data:`COVERED_TAGS`). Triton is imported only here and only when a trace is
-compiled, so CPU-only installs never import it.
+keyframe motion), round curves of a static primitive structure (:mod:`jaxrt._src.traversal.triton_curves`;
+:func:`curve_leaves`; not in one structure with boxes), nearest and any hit, cull modes and windings, ray
+intervals, masks and disabled rays, several geometries per structure, instances over any number of levels,
+keyframe motion of triangles and instances at each ray's time, the ``K`` nearest hits of ``max_hits`` with each
+hit's instance chain, counting every hit, and the tags of :data:`COVERED_TAGS`). Triton is imported only here
+and only when a trace is compiled, so CPU-only installs never import it.
 
 The kernel traces the scene's binary nodes by default; ``KernelOptions(node_width=4)`` traces a 4-wide tree
 with leaf clusters collapsed from them on every call (slower on an H200: docs/performance.md). The 4-wide
@@ -84,7 +85,7 @@ COVERED_TAGS = frozenset(
 #: and per-level rays below instances) to ``MAX_PROGRAMS * rays_per_program`` times the entries per ray.
 MAX_PROGRAMS = 1 << 15
 #: Leading arguments of the kernel call that come from the scene (the rest are per ray).
-SCENE_ARGS = 15
+SCENE_ARGS = 16
 #: Per-ray arguments after them (origin, direction, t_min, t_max, enabled, mask, time, root); a prepacked call
 #: appends the structure's node and triangle rows (:class:`~jaxrt._src.traversal.packed.KernelLayout`).
 RAY_ARGS = 8
@@ -147,6 +148,7 @@ class _Config:
     max_hits: int = 0  # keep this many nearest hits per ray (0: the nearest hit only)
     count: bool = False  # count every accepted hit (no hit list)
     analytic: int = 0  # analytic leaves: bits 0-2 their shapes, bit 3 triangles too (0: triangles only)
+    curves: tuple = ()  # with curve leaves: CurveLeaves.options (pieces, iterations, approach, tolerance, disk, sphere)
 
     @property
     def hit_list(self) -> bool:
@@ -188,8 +190,6 @@ def unavailable_reason(intersector: Any) -> str | None:
     uncovered = sorted({tag.name for tag in intersector.tags} - COVERED_TAGS)
     if uncovered:
         return f"tags {uncovered} are not covered by the GPU kernel"
-    if "curve" in (getattr(intersector, "geometry_types", None) or ()) or getattr(intersector, "curve_type", None):
-        return "curves are not covered by the GPU kernel (structures with curves take the portable traversal)"
     return _import_error()
 
 
@@ -215,10 +215,11 @@ def kernel_call(
     rays: jax.Array,
     config: _Config,
     instance_motion: jax.Array | None = None,
+    curves: jax.Array | None = None,
 ):
     """The :class:`KernelCall` tracing the packed ``rays`` block through the packed scene (with keyframe
     motion, ``nodes`` and ``triangles`` are the rows per keyframe and ``instance_motion`` the instance motion
-    rows: :mod:`jaxrt._src.traversal.packed`)."""
+    rows; with curves, ``curves`` the curve rows: :mod:`jaxrt._src.traversal.packed`)."""
     size = rays.shape[1]
     options = config.options
     lanes = options.rays_per_program
@@ -259,6 +260,16 @@ def kernel_call(
         IWIDTH=4 + 12 * config.instance_keys if config.instance_keys else 0,
     )
     params.update(MAX_HITS=config.max_hits, COUNT=config.count, ANALYTIC=config.analytic)
+    pieces, iterations, approach, tolerance, disk, sphere = config.curves or (1, 0, 0, 0.0, False, False)
+    params.update(
+        CURVES=bool(config.curves),
+        PIECES=pieces,
+        ITERATIONS=iterations,
+        APPROACH=approach,
+        TOLERANCE=float(np.float32(tolerance)),
+        DISK=disk,
+        SPHERE=sphere,
+    )
     k = config.max_hits
     extra = (
         jax.ShapeDtypeStruct((max(1, levels * size),), jnp.int32),  # instance chain, (levels, size)
@@ -271,7 +282,9 @@ def kernel_call(
     )
     if instance_motion is None:
         instance_motion = jnp.zeros((1,), jnp.float32)
-    args = (nodes, triangles, instances, rays, size, programs, config.primitive_leaves, instance_motion)
+    if curves is None:
+        curves = jnp.zeros((1,), jnp.float32)
+    args = (nodes, triangles, instances, rays, size, programs, config.primitive_leaves, instance_motion, curves)
     return KernelCall("trace_kernel", programs, args, results + extra, params, 10 if config.hit_list else 6)
 
 
@@ -314,7 +327,7 @@ def _kernel(*args, config: _Config) -> tuple[jax.Array, ...]:
     """
     (node_lower, node_upper, node_children, node_range, leaf_triangle, world_to_object, child_root, facing,
      instance_mask, node_keys_lower, node_keys_upper, leaf_keys, leaf_moving, instance_motion, leaf_analytic,
-     origin, direction, t_min, t_max, enabled, mask, time, root) = args[: SCENE_ARGS + RAY_ARGS]  # fmt: skip
+     curve_rows, origin, direction, t_min, t_max, enabled, mask, time, root) = args[: SCENE_ARGS + RAY_ARGS]  # fmt: skip
     n = origin.shape[0]
     lanes = config.options.rays_per_program
     size = max(lanes, -(-n // lanes) * lanes)
@@ -334,12 +347,12 @@ def _kernel(*args, config: _Config) -> tuple[jax.Array, ...]:
     if config.analytic and triangles is not leaf_analytic:  # analytic leaves take their rows (code in column 3)
         triangles = jnp.where(leaf_analytic[:, 3:4] != 0, leaf_analytic, triangles)
     instances = packed.pack_instances(world_to_object, child_root, facing, instance_mask)
-    extended = config.levels > 0 or config.roots or config.motion or bool(config.analytic)
+    extended = config.levels > 0 or config.roots or config.motion or bool(config.analytic) or bool(config.curves)
     motion = None
-    if config.motion:
+    if config.motion or config.curves:
         if config.leaf_keys:  # the scene's keyframe segment at each ray's time, as the portable path finds it
             position = spec_position(config.leaf_spec, config.leaf_keys, time)
-        else:
+        else:  # (also the placeholder rows before the curve rows)
             zero = jnp.zeros(time.shape, jnp.int32)
             position = KeyframePosition(zero, zero.astype(jnp.float32), jnp.ones(time.shape, bool))
         motion = (position.index, position.weight, position.visible, time)
@@ -353,9 +366,11 @@ def _kernel(*args, config: _Config) -> tuple[jax.Array, ...]:
         mask=mask if extended else None,
         root=root if extended else None,
         motion=motion,
+        curve_frame=_curve_frames(origin, direction) if config.curves else None,
     )
     moving_instances = instance_motion if config.instance_keys else None
-    out = _launch(kernel_call(nodes, triangles, instances, rays, config, moving_instances))
+    curves = curve_rows if config.curves else None
+    out = _launch(kernel_call(nodes, triangles, instances, rays, config, moving_instances, curves))
     distance, leaf, visited, tested, overflow = (a[:n] for a in out[:5])
     if config.levels and len(out) > 5:
         chain = out[5][: config.levels * size].reshape(config.levels, size)[:, :n].T
@@ -367,6 +382,15 @@ def _kernel(*args, config: _Config) -> tuple[jax.Array, ...]:
     hit_list = (out[6][: k * size].reshape(k, size)[:, :n].T, out[7][: k * size].reshape(k, size)[:, :n].T)
     chains = out[9][: k * levels * size].reshape(k, levels, size)[:, :, :n].transpose(2, 0, 1)
     return distance, leaf, chain, visited, tested, overflow, *hit_list, out[8][:n], chains
+
+
+def _curve_frames(origin: jax.Array, direction: jax.Array) -> jax.Array:
+    """``(N, 10)``: each ray's :func:`~jaxrt._src.primitives.curve.curve_ray` frame row by row and ``1 / |d|``,
+    computed by the portable test's own function."""
+    from jaxrt._src.primitives import curve
+
+    ray = jax.vmap(curve.curve_ray)(origin, direction)
+    return jnp.concatenate([ray.frame.reshape(-1, 9), ray.inv_length[:, None]], axis=-1)
 
 
 def _concatenate_scenes(scene: list[jax.Array], root: jax.Array) -> tuple[list[jax.Array], jax.Array, int, int]:
@@ -389,7 +413,7 @@ def _concatenate_scenes(scene: list[jax.Array], root: jax.Array) -> tuple[list[j
     flat = lambda a: a.reshape(-1, *a.shape[2:])  # noqa: E731
     arrays = [node_lower, node_upper, children, node_range, leaf_triangle, world_to_object]
     arrays += [child_root + index[:, None] * m, facing, instance_mask]
-    arrays += motion  # keyframe and analytic rows: node-, leaf- and instance-major, no indices to move
+    arrays += motion  # keyframe, analytic and curve rows: node-, leaf- and instance-major, no indices to move
     return [flat(a) for a in arrays], flat(root + index[:, None] * m), p, g
 
 
@@ -445,6 +469,37 @@ def _traversal(config: _Config):
         return tuple(a.reshape(axis_size, n, *a.shape[1:]) for a in out), (True,) * outputs
 
     return call
+
+
+class CurveLeaves(NamedTuple):
+    """The curve leaves of a primitive structure as the kernel reads them (:func:`curve_leaves`)."""
+
+    rows: jax.Array  # (P, 24) float32: packed.pack_curves of every primitive leaf
+    options: tuple  # static: (pieces, iterations, approach_iterations, tolerance, any disk caps, any sphere caps)
+
+
+def curve_leaves(view: Any, config: dict) -> CurveLeaves | None:
+    """The :class:`CurveLeaves` of a :class:`~jaxrt._src.scene_view.SceneView` with the static curve code choices
+    ``config`` (:func:`jaxrt._src.leaves.curve_configuration`), or ``None`` without curves. Round curves only
+    (:func:`jaxrt._src.pipeline.kernel_declines` declines flat ones)."""
+    from jaxrt._src.primitives import curve
+
+    if view.leaves.curve is None:
+        return None
+    if curve.FLAT in config["curve_types"]:
+        raise ValueError("traversal.gpu: flat curves are not covered by the GPU kernel")
+    options = config["options"]
+    caps = config["end_caps"]
+    static = (
+        int(options.pieces),
+        int(options.iterations),
+        int(options.approach_iterations),
+        float(options.tolerance),
+        curve.CAP_DISK in caps,
+        curve.CAP_SPHERE in caps,
+    )
+    rows = packed.pack_curves(lax.stop_gradient(view.leaves.curve), view.leaves.curve_flags)
+    return CurveLeaves(rows, static)
 
 
 class LeafMotion(NamedTuple):
@@ -586,6 +641,7 @@ def trace_scene(
     max_hits: int | None = None,
     count_all: bool = False,
     analytic: AnalyticLeaves | None = None,
+    curves: CurveLeaves | None = None,
 ) -> TraversalResult:
     """Trace rays through a scene of any instance depth with the GPU kernel.
 
@@ -611,6 +667,8 @@ def trace_scene(
       count_all: static; count every accepted hit in ``hits.total`` (no culling), at any instance depth.
       analytic: the parameter rows of the scene's analytic leaves (:func:`analytic_leaves`): bounding-box
         leaves tested as the built-in intersection functions test them (not with keyframe motion).
+      curves: the round curve leaves of a primitive structure (:func:`curve_leaves`): leaves whose row is a
+        curve take the portable ``curve.intersect`` test (in the kernel) instead of the triangle test.
 
     Returns:
       The portable traversal's :class:`~jaxrt._src.traversal.scene.TraversalResult`: the leaf (-1 on a miss),
@@ -628,7 +686,7 @@ def trace_scene(
             "traversal.gpu.trace_scene: hit lists need max_hits >= 1 (0 with count_all) and no any_hit "
             f"(got max_hits={max_hits}, count_all={count_all}, any_hit={any_hit})"
         )
-    if hit_list or analytic is not None:  # the 4-wide layout keeps no hit lists and tests triangles only
+    if hit_list or analytic is not None or curves is not None:  # the 4-wide layout: no hit lists, triangles only
         options = dataclasses.replace(options, node_width=2)
     if layout.motion and time is None:
         raise ValueError("traversal.gpu.trace_scene: the scene has keyframe motion; pass each ray's time")
@@ -641,6 +699,8 @@ def trace_scene(
         options = dataclasses.replace(options, node_width=2)
     node_range = scene.node_range if options.node_width == 4 else jnp.zeros((1, 2), jnp.int32)
     _check_indices(scene.node_children.shape[0], scene.instance_child_root.shape[0], levels)
+    if curves is not None and (levels or moving):
+        raise ValueError("traversal.gpu.trace_scene: curves are covered in static primitive structures only")
     rows = getattr(scene, "kernel_layout", None)
     prepacked = rows is not None and options.node_width == 2 and levels == 0 and layout.root == 0 and not moving
     config = _Config(
@@ -655,6 +715,7 @@ def trace_scene(
         max_hits=k,
         count=bool(count_all),
         analytic=0 if analytic is None else int(analytic.shapes),
+        curves=curves.options if curves is not None else (),
     )
     detached = lax.stop_gradient
     motion_args, config = _motion_arguments(scene, layout, leaf_motion, config)
@@ -672,6 +733,7 @@ def trace_scene(
         scene.instance_mask,
         *(detached(a) for a in motion_args),
         jnp.zeros((1, packed.TRIANGLE_WIDTH), jnp.float32) if analytic is None else detached(analytic.rows),
+        detached(curves.rows) if curves is not None else jnp.zeros((1, packed.CURVE_WIDTH), jnp.float32),
         *(detached(a) for a in (origin, direction, t_min, t_max)),
         enabled,
         mask.astype(jnp.uint32),

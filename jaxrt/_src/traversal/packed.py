@@ -65,6 +65,16 @@ Keyframe motion adds, where the scene has it:
   object-to-world keyframe transforms row by row;
 - ray block rows 20-23 (the extended block): the keyframe segment of the scene's primitive motion at the
   ray's time (int32 bits), its blend weight, 1 where moving leaves exist at that time (else 0), and the time.
+
+Curves add, where the structure has curve leaves:
+
+- curve rows, ``(C, 24)`` float32, 96 bytes per leaf (:func:`pack_curves`): the packed segment of
+  :func:`jaxrt._src.curves.pack_segments` as the portable test starts from it: the four cubic Bezier control
+  points ``x, y, z, radius`` relative to the base point (columns 0-15), the base point (16-18), the segment's
+  flags (19, int32 bits: previous / next segment, end caps, ``IS_CURVE``; 0 for a triangle leaf) and the
+  predecessor's derivative at the joint (20-23);
+- ray block rows 24-33 (after the extended block, motion rows zero without motion): the ray's curve frame
+  ``e1, e2, n`` row by row and ``1 / |d|`` (:func:`jaxrt._src.primitives.curve.curve_ray`).
 """
 
 from __future__ import annotations
@@ -95,6 +105,8 @@ __all__ = [
     "pack_node_keys",
     "pack_triangle_keys",
     "pack_instance_motion",
+    "pack_curves",
+    "CURVE_WIDTH",
     "KernelLayout",
     "kernel_layout",
     "pack_analytic",
@@ -111,6 +123,10 @@ RAY_ROWS = 16
 EXTENDED_RAY_ROWS = 20
 #: Rows of the extended ray block with keyframe motion (keyframe segment, weight, visibility and time added).
 MOTION_RAY_ROWS = 24
+#: Columns of a curve row (:func:`pack_curves`).
+CURVE_WIDTH = 24
+#: Rows of the ray block with curves (the curve frame and ``1 / |d|`` added after the motion rows).
+CURVE_RAY_ROWS = 34
 
 
 def pack_nodes(node_lower: jax.Array, node_upper: jax.Array, node_children: jax.Array) -> jax.Array:
@@ -273,6 +289,15 @@ def pack_instance_motion(
     return jnp.concatenate([times, bits, keys.astype(jnp.float32).reshape(g, 12 * k)], axis=-1)
 
 
+def pack_curves(leaf_curve: jax.Array, leaf_flags: jax.Array) -> jax.Array:
+    """The ``(C, 24)`` float32 curve rows of packed segments ``(C, 6, 4)`` and their flags ``(C,)`` (layout in
+    the module docstring)."""
+    c = leaf_curve.shape[0]
+    segment = leaf_curve.astype(jnp.float32)
+    flags = lax.bitcast_convert_type(leaf_flags.astype(jnp.int32), jnp.float32)[:, None]
+    return jnp.concatenate([segment[:, :4].reshape(c, 16), segment[:, 4, :3], flags, segment[:, 5]], axis=-1)
+
+
 def pack_rays(
     origin: jax.Array,
     direction: jax.Array,
@@ -284,10 +309,12 @@ def pack_rays(
     mask: jax.Array | None = None,
     root: jax.Array | None = None,
     motion: tuple[jax.Array, jax.Array, jax.Array, jax.Array] | None = None,
+    curve_frame: jax.Array | None = None,
 ) -> jax.Array:
     """The ``(16, size)`` float32 ray block, or the extended ``(20, size)`` one when ``mask`` and ``root`` are
     given, or the ``(24, size)`` one when ``motion`` (keyframe segment, weight, visibility and time per ray)
-    is given too; columns past the ray count are disabled rays.
+    is given too, or the ``(34, size)`` one when ``curve_frame`` (``(N, 10)``: the curve frame row by row and
+    ``1 / |d|``) is given too; columns past the ray count are disabled rays.
 
     The per-ray constants are computed here with the same functions as the portable traversal, so both
     paths start from bit-identical values.
@@ -310,6 +337,8 @@ def pack_rays(
                 visible.astype(jnp.float32)[:, None],
                 time.astype(jnp.float32)[:, None],
             ]
+            if curve_frame is not None:
+                extra.append(curve_frame.astype(jnp.float32))
     columns = jnp.concatenate(
         [
             origin.astype(jnp.float32),

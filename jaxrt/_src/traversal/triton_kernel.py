@@ -75,6 +75,7 @@ import triton
 import triton.language as tl
 
 from jaxrt._src.traversal.triton_analytic import analytic_hit
+from jaxrt._src.traversal.triton_curves import curve_leaf, curve_ray
 
 
 @triton.jit
@@ -764,6 +765,7 @@ def trace_kernel(
     n_programs,
     n_primitives,
     imotion_ptr,
+    curves_ptr,
     distance_ptr,
     leaf_ptr,
     visited_ptr,
@@ -796,6 +798,13 @@ def trace_kernel(
     MAX_HITS: tl.constexpr = 0,
     COUNT: tl.constexpr = False,
     ANALYTIC: tl.constexpr = 0,
+    CURVES: tl.constexpr = False,
+    PIECES: tl.constexpr = 1,
+    ITERATIONS: tl.constexpr = 0,
+    APPROACH: tl.constexpr = 0,
+    TOLERANCE: tl.constexpr = 0.0,
+    DISK: tl.constexpr = False,
+    SPHERE: tl.constexpr = False,
 ):
     """Trace ``n_rays`` rays (a multiple of ``LANES``); outputs as :class:`~jaxrt._src.traversal.scene.TraversalResult`.
 
@@ -822,6 +831,12 @@ def trace_kernel(
     Analytic leaves (``ANALYTIC = 0`` compiles none of this): bits 0-2 name the shapes of the scene (sphere,
     disk, capped cylinder), bit 3 that it also holds triangles; see :func:`_leaf`. Without instances the
     direction comes from the extended ray block (rows 17-19).
+
+    Curves (``CURVES = False`` compiles none of this): ``curves_ptr`` holds a curve row per primitive leaf
+    (:func:`jaxrt._src.traversal.packed.pack_curves`) and ray block rows 24-33 each ray's curve frame; a leaf
+    whose row is a curve takes the round segment test of :mod:`jaxrt._src.traversal.triton_curves` after the
+    triangle test, whose answer it replaces (a primitive structure only, ``LEVELS = 0``; the options
+    ``PIECES`` to ``SPHERE`` are :func:`~jaxrt._src.traversal.triton_curves.curve_leaf`'s).
     """
     pid = tl.program_id(0)
     lane = tl.arange(0, LANES)
@@ -882,6 +897,8 @@ def trace_kernel(
                 dx = 0.0
                 dy = 0.0
                 dz = 0.0
+        if CURVES:
+            cray = curve_ray(rays_ptr, n_rays, ray, ox, oy, oz)
         # One warp reduction per step: bit 0 / 1, some lane tests leaf child 0 / 1; bit 2, some lane was
         # active when the step began. The loop therefore ends one (fully masked, no-op) step after the last ray.
         go = tl.max(1 - done, axis=0)
@@ -926,11 +943,19 @@ def trace_kernel(
                 # Skip a leaf test that no lane of the warp needs (a warp-uniform branch).
                 if (votes & 1) != 0:
                     h0, t0 = _leaf(tris_ptr, -1 - c0, test0, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, ox, oy, oz, dx, dy, dz, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS, ANALYTIC)  # fmt: skip
+                    if CURVES:
+                        h0, t0 = curve_leaf(curves_ptr, -1 - c0, test0, h0, t0, cray, t_min, distance, LANES, PIECES, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE)  # fmt: skip
                 if (votes & 2) != 0:
                     h1, t1 = _leaf(tris_ptr, -1 - c1, test1, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, ox, oy, oz, dx, dy, dz, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS, ANALYTIC)  # fmt: skip
+                    if CURVES:
+                        h1, t1 = curve_leaf(curves_ptr, -1 - c1, test1, h1, t1, cray, t_min, distance, LANES, PIECES, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE)  # fmt: skip
             else:
                 h0, t0 = _leaf(tris_ptr, -1 - c0, test0, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, ox, oy, oz, dx, dy, dz, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS, ANALYTIC)  # fmt: skip
+                if CURVES:
+                    h0, t0 = curve_leaf(curves_ptr, -1 - c0, test0, h0, t0, cray, t_min, distance, LANES, PIECES, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE)  # fmt: skip
                 h1, t1 = _leaf(tris_ptr, -1 - c1, test1, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, ox, oy, oz, dx, dy, dz, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS, ANALYTIC)  # fmt: skip
+                if CURVES:
+                    h1, t1 = curve_leaf(curves_ptr, -1 - c1, test1, h1, t1, cray, t_min, distance, LANES, PIECES, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE)  # fmt: skip
             second = t1 < t0
             best_t = tl.where(second, t1, t0)
             best_leaf = tl.where(second, -1 - c1, -1 - c0)

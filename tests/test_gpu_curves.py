@@ -1,0 +1,330 @@
+"""Round curve segments in the GPU kernel, against the portable traversal and a float64 reference.
+
+As in ``test_gpu_instanced.py``: the kernel runs in Triton's interpreter on the CPU (in a fresh process) or on
+a CUDA GPU, launched through the same :class:`gpu.KernelCall`. The reference is the portable traversal of the
+same scene view with the portable leaf tests (``curve.intersect``): both make the same decisions step for step,
+so the leaf (hit or miss, and which segment) and the traversal counters are equal. Distances agree within the
+float32 distance tolerance of ``tests/reference.py`` (8 eps relative): the kernel evaluates ``curve.intersect``'s
+formulas in its order of operations without contraction, while XLA contracts some multiply-adds into fused
+ones (measured: up to 5 ulps apart, about half the hits bit-identical). Both are also checked per ray against
+the float64 reference of ``jaxrt.bench.curves`` (the nearest hit, within the bounds of
+``tests/test_curves_primitive.py``).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from reference import TOLERANCE
+from test_curves_primitive import DISTANCE, EPS32, ROUNDING, aimed_rays
+from test_curves_structure import hair
+from test_gpu_instanced import (
+    INTERPRETED,
+    LAUNCHES,
+    ON_GPU,
+    kernel_launches_here,
+    kernel_test,
+    run_kernel_tests_in_interpreter,
+)
+
+import jaxrt as rt
+from jaxrt._src import leaves as leaf_tests
+from jaxrt._src import pipeline
+from jaxrt._src.scene_view import scene_view
+from jaxrt._src.traversal import drivers, gpu
+from jaxrt.bench.curves import host_segments, reference_hits
+
+kernel_here = pytest.fixture(kernel_launches_here, name="kernel_here")
+ALL_RAYS = np.uint32(0xFFFFFFFF)
+RTOL = TOLERANCE[np.dtype(np.float32)].distance
+CURVE = int(rt.IntersectionType.CURVE)
+TRIANGLE = int(rt.IntersectionType.TRIANGLE)
+
+
+def test_kernel_in_interpreter():
+    """Runs this module's kernel tests in Triton's interpreter, in a fresh process."""
+    run_kernel_tests_in_interpreter(__file__, "not interpreter and not kernel_ir")
+
+
+# --- which scenes the kernel takes (no Triton needed) ----------------------------------------------------------
+
+
+def _infos(structure):
+    return tuple(structure.geometry_info)
+
+
+def test_kernel_declines_flat_instanced_and_moving_curves():
+    """Round curves in a static primitive structure are the kernel's; flat curves, curves below instances or
+    with keyframe motion, and every curve on the CPU traversal are declined, each with its reason."""
+    round_ = rt.build_primitive_structure(hair(seed=1, strands=2))
+    flat = rt.build_primitive_structure(hair(seed=1, strands=2, curve_type="flat"))
+    plain = rt.Intersector()
+    assert pipeline.kernel_declines(plain, _infos(round_), "gpu") is None
+    assert pipeline.kernel_declines(plain, _infos(flat), "gpu") == "flat curves are not covered by the GPU kernel"
+    forced = rt.Intersector(curve_type="flat")
+    assert "flat curves" in pipeline.kernel_declines(forced, _infos(round_), "gpu")
+    assert "below instances" in pipeline.kernel_declines(plain, _infos(round_), "gpu", levels=1)
+    assert "keyframe motion" in pipeline.kernel_declines(plain, _infos(round_), "gpu", motion=True)
+    assert pipeline.kernel_declines(plain, _infos(round_), "cpu") == "curves are not covered by the CPU traversal"
+    # A curve intersector no longer rules the kernel out on its own (the scene decides).
+    if jax.default_backend() != "gpu":
+        assert "default JAX backend" in gpu.unavailable_reason(rt.Intersector(curve_type="round"))
+
+
+def test_forced_gpu_backend_names_the_reason():
+    structure = rt.build_primitive_structure(hair(seed=2, strands=2, curve_type="flat"))
+    origin, direction = aimed_rays(np.random.default_rng(0), hair(seed=2, strands=2), 4)
+    with pytest.raises(ValueError, match="flat curves are not covered by the GPU kernel"):
+        rt.Intersector(backend="gpu").intersect(rt.Ray(jnp.asarray(origin), jnp.asarray(direction)), structure)
+
+
+def test_curve_rows_hold_the_packed_segments():
+    """96 bytes per leaf: the control points, the base point, the flags' bits and the previous derivative."""
+    from jaxrt._src.traversal import packed
+
+    structure = rt.build_primitive_structure(hair(seed=3, strands=2, end_caps="sphere"))
+    view = scene_view(structure)
+    rows = np.asarray(packed.pack_curves(view.leaves.curve, view.leaves.curve_flags))
+    segment = np.asarray(view.leaves.curve)
+    assert rows.shape == (segment.shape[0], packed.CURVE_WIDTH) and rows.dtype == np.float32
+    np.testing.assert_array_equal(rows[:, :16], segment[:, :4].reshape(-1, 16))
+    np.testing.assert_array_equal(rows[:, 16:19], segment[:, 4, :3])
+    np.testing.assert_array_equal(rows[:, 19].view(np.int32), np.asarray(view.leaves.curve_flags))
+    np.testing.assert_array_equal(rows[:, 20:], segment[:, 5])
+
+
+# --- the kernel's tests -------------------------------------------------------------------------------------------
+
+COMBOS = [("bezier", 4, "sphere"), ("bezier", 3, "disk"), ("catmull_rom", 4, "none")]
+COMBOS += [("bspline", 4, "disk"), ("bspline", 3, "sphere"), ("linear", 2, "sphere")]
+
+
+def _rays(geometry, n: int, seed: int, *, t_min=None, t_max=None, disabled: int = 0):
+    origin, direction = aimed_rays(np.random.default_rng(seed), geometry, n)
+    lo = np.zeros(n, np.float32) if t_min is None else t_min.astype(np.float32)
+    hi = np.full(n, np.inf, np.float32) if t_max is None else t_max.astype(np.float32)
+    enabled = np.ones(n, bool)
+    if disabled:
+        enabled[-disabled:] = False
+    return origin, direction, lo, hi, enabled
+
+
+def check(structure, ray_args, intersector: rt.Intersector | None = None, *, any_hit: bool = False):
+    """The kernel against the portable traversal of the same view: equal leaves and counters, distances within
+    the float32 distance tolerance."""
+    intersector = intersector or rt.Intersector()
+    view = scene_view(structure)
+    origin, direction, t_min, t_max, enabled = (jnp.asarray(a) for a in ray_args)
+    mask = jnp.full(origin.shape[:1], ALL_RAYS, jnp.uint32)
+    geometry = (origin, direction, t_min, t_max, enabled, mask)
+    curves = gpu.curve_leaves(view, leaf_tests.curve_configuration(intersector, view))
+    got = gpu.trace_scene(view.traversal, view.layout, *geometry, any_hit=any_hit, cull=intersector.cull, curves=curves)
+    tester = leaf_tests.leaf_tester(intersector, view)
+    fn = functools.partial(drivers.traverse, view.traversal, view.layout, tester, any_hit=any_hit)
+    want = jax.jit(jax.vmap(fn))(*geometry)
+    for name in ("leaf", "nodes_visited", "primitives_tested"):
+        np.testing.assert_array_equal(np.asarray(getattr(got, name)), np.asarray(getattr(want, name)), err_msg=name)
+    np.testing.assert_allclose(np.asarray(got.distance), np.asarray(want.distance), rtol=RTOL, atol=0)
+    assert not np.asarray(got.stack_overflow).any()
+    if not ON_GPU:
+        assert LAUNCHES, "the kernel did not run"
+    return np.asarray(got.leaf), np.asarray(got.distance)
+
+
+def check_reference(geometry, ray_args, leaf, distance):
+    """Per ray of a structure of ``geometry`` alone, the kernel's nearest hit against the float64 reference
+    over every segment (rays whose reference is ambiguous at some segment are skipped)."""
+    origin, direction, t_min, t_max, enabled = ray_args
+    segments = host_segments(geometry)
+    r, s = len(origin), segments.points.shape[0]
+    ray_index, segment_index = np.repeat(np.arange(r), s), np.tile(np.arange(s), r)
+    radius = float(np.max(np.asarray(geometry.radii)))
+    points = np.asarray(geometry.control_points, np.float64)
+    scale = np.max(np.linalg.norm(points[None] - origin[:, None], axis=-1), axis=1)
+    rounding = ROUNDING * EPS32 * scale
+    lo = np.asarray(t_min, np.float64)
+    hi = np.where(enabled, np.asarray(t_max, np.float64), -np.inf)
+    ref = reference_hits(
+        origin, direction, lo, hi, segments, ray_index, segment_index, band=1e-2 * radius + rounding.max()
+    )
+    ref_t = np.where(ref.hit & enabled[ray_index], ref.distance, np.inf).reshape(r, s)
+    decided = ~ref.ambiguous.reshape(r, s).any(axis=1)
+    nearest = ref_t.min(axis=1)
+    hit = leaf >= 0
+    allowed = (DISTANCE * radius + rounding) / np.linalg.norm(direction.astype(np.float64), axis=1)
+    wrong = decided & (hit != np.isfinite(nearest))
+    both = decided & hit & np.isfinite(nearest)
+    wrong |= both & (np.abs(np.where(both, distance - nearest, 0.0)) > allowed)
+    assert not wrong.any(), f"rays {np.nonzero(wrong)[0][:8]} differ from the float64 reference"
+    assert decided.sum() >= 0.8 * r and both.sum() >= 0.5 * r
+    return int(both.sum())
+
+
+@kernel_test
+@pytest.mark.parametrize(("basis", "count", "caps"), COMBOS)
+def test_every_basis_and_cap(basis, count, caps, kernel_here):
+    """Every basis and control point count (all cubic Bezier after conversion; linear with its exact one-piece
+    test), each end cap kind, with interval limits and disabled rays."""
+    geometry = hair(seed=len(basis) + count, strands=3, basis=basis, count=count, end_caps=caps)
+    rng = np.random.default_rng(count)
+    n = 32
+    t_min = np.where(rng.random(n) < 0.2, rng.uniform(4.0, 12.0, n), 0.0)
+    t_max = np.where(rng.random(n) < 0.2, rng.uniform(4.0, 12.0, n), np.inf)
+    ray_args = _rays(geometry, n, seed=count + 7, t_min=t_min, t_max=np.maximum(t_max, t_min), disabled=2)
+    leaf, distance = check(rt.build_primitive_structure(geometry), ray_args)
+    assert (leaf[-2:] == -1).all()
+    check_reference(geometry, ray_args, leaf, distance)
+
+
+def _kinked(caps: str):
+    """Two strands with sharp kinks at their joints (a linear and a Bezier chain): the joint spheres fill them."""
+    linear = np.array([[0, 0, 0], [1, 0, 0], [1.1, 1, 0], [2, 1.2, 0.3]], np.float32)
+    bezier = np.array([[0, 0, 1], [0.4, 0.1, 1], [0.8, 0, 1], [1, 0, 1], [1.1, 0.4, 1], [1, 0.8, 1], [1.2, 1, 1]])
+    return (
+        rt.CurveGeometry(linear, np.full(4, 0.08, np.float32), np.arange(3), basis="linear", control_point_count=2,
+                         end_caps=caps),
+        rt.CurveGeometry(bezier.astype(np.float32), np.full(7, 0.1, np.float32), np.array([0, 3]), basis="bezier",
+                         control_point_count=4, end_caps=caps),
+    )  # fmt: skip
+
+
+@kernel_test
+def test_kinked_joints_with_triangles_any_hit_and_intervals(kernel_here):
+    """Kink joints, mixed with triangles in one structure (each leaf takes its kind's test), nearest and any
+    hit; rays aimed at the joints."""
+    linear, bezier = _kinked("sphere")
+    rng = np.random.default_rng(5)
+    triangles = rt.TriangleGeometry(rng.uniform(-1, 2.5, (24, 3)).astype(np.float32))
+    structure = rt.build_primitive_structure([triangles, bezier])
+    n = 64
+    joints = np.array([[1, 0, 1]], np.float64)
+    target = joints + rng.normal(scale=0.1, size=(n, 3))
+    direction = rng.normal(size=(n, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    origin = (target - 8.0 * direction).astype(np.float32)
+    t_max = np.where(rng.random(n) < 0.25, rng.uniform(6.0, 9.0, n), np.inf).astype(np.float32)
+    ray_args = (origin, direction.astype(np.float32), np.zeros(n, np.float32), t_max, np.ones(n, bool))
+    leaf, distance = check(structure, ray_args)
+    kinds = np.asarray(scene_view(structure).leaves.curve_flags)[np.maximum(leaf, 0)] != 0
+    assert (kinds & (leaf >= 0)).sum() > 10 and (~kinds & (leaf >= 0)).sum() > 5
+    check(structure, ray_args, any_hit=True)
+    # The linear chain alone (one exact round cone per segment, no Newton) against the float64 reference.
+    ray_args = _rays(linear, 32, seed=11)
+    leaf, distance = check(rt.build_primitive_structure(linear), ray_args)
+    check_reference(linear, ray_args, leaf, distance)
+
+
+@kernel_test
+def test_options_and_hit_lists(kernel_here):
+    """Static curve options (pieces that are not a power of two, no Newton steps), the K nearest hits and
+    counting every hit."""
+    geometry = hair(seed=8, strands=3, end_caps="disk")
+    ray_args = _rays(geometry, 32, seed=9)
+    for options in (rt.CurveOptions(pieces=5, iterations=2, approach_iterations=1), rt.CurveOptions(iterations=0)):
+        check(rt.build_primitive_structure(geometry), ray_args, rt.Intersector(curve_options=options))
+    # Stacked strands (Bezier, and linear ones) that rays from above cross one after another.
+    rng = np.random.default_rng(10)
+    strands = [np.stack([np.linspace(0, 3, 7), 0.1 * np.sin(np.arange(7) + j), np.full(7, j)], -1) for j in range(4)]
+    indices = np.concatenate([np.array([0, 3]) + 7 * j for j in range(4)])
+    radii = np.full(28, 0.2, np.float32)
+    stacked = [rt.CurveGeometry(np.concatenate(strands).astype(np.float32), radii, indices, basis="bezier",
+                                control_point_count=4, end_caps="sphere")]  # fmt: skip
+    stacked.append(rt.CurveGeometry(stacked[0].control_points + np.float32(0.5), radii, np.arange(27), basis="linear",
+                                    control_point_count=2))  # fmt: skip
+    structure = rt.build_primitive_structure(stacked)
+    n = 32
+    origin = np.stack([rng.uniform(0.1, 3.4, n), rng.uniform(-0.2, 0.7, n), np.full(n, 9.0)], -1).astype(np.float32)
+    direction = np.stack([rng.normal(scale=0.02, size=n), rng.normal(scale=0.02, size=n), -np.ones(n)], -1)
+    ray_args = (origin, direction.astype(np.float32), np.zeros(n, np.float32), np.full(n, np.inf, np.float32))
+    view = scene_view(structure)
+    mask = jnp.full((n,), ALL_RAYS, jnp.uint32)
+    args = (*(jnp.asarray(a) for a in ray_args), jnp.ones(n, bool), mask)
+    intersector = rt.Intersector()
+    curves = gpu.curve_leaves(view, leaf_tests.curve_configuration(intersector, view))
+    got = gpu.trace_scene(view.traversal, view.layout, *args, any_hit=False, cull=0, curves=curves, max_hits=3)
+    tester = leaf_tests.leaf_tester(intersector, view)
+    fn = functools.partial(drivers.traverse, view.traversal, view.layout, tester, any_hit=False, max_hits=3)
+    want = jax.jit(jax.vmap(fn))(*args)
+    np.testing.assert_array_equal(np.asarray(got.hits.leaf), np.asarray(want.hits.leaf))
+    np.testing.assert_array_equal(np.asarray(got.hits.total), np.asarray(want.hits.total))
+    np.testing.assert_allclose(np.asarray(got.hits.distance), np.asarray(want.hits.distance), rtol=RTOL, atol=0)
+    assert (np.asarray(got.hits.total) > 1).sum() > 3
+    # Counting every hit.
+    got = gpu.trace_scene(view.traversal, view.layout, *args, any_hit=False, cull=0, curves=curves, count_all=True)
+    fn = functools.partial(
+        drivers.traverse, view.traversal, view.layout, tester, any_hit=False, max_hits=0, count_all=True
+    )
+    want = jax.jit(jax.vmap(fn))(*args)
+    np.testing.assert_array_equal(np.asarray(got.hits.total), np.asarray(want.hits.total))
+    assert (np.asarray(got.hits.total) > 3).sum() > 3
+
+
+@kernel_test
+def test_intersector_fields_and_gradients_from_the_kernel(kernel_here, monkeypatch):
+    """``Intersector(backend="gpu")``: the kernel picks the leaf, the result fields (``curve_parameter``,
+    distances, ids) and the gradients come from the differentiable re-intersection, equal to the portable
+    path's; ray masks (a zero mask misses)."""
+    if not ON_GPU:
+        monkeypatch.setattr(gpu, "unavailable_reason", lambda intersector: None)
+    geometry = hair(seed=12, strands=3, end_caps="sphere")
+    rng = np.random.default_rng(13)
+    triangles = rt.TriangleGeometry(rng.uniform(-2, 2, (12, 3)).astype(np.float32))
+    origin, direction = aimed_rays(rng, geometry, 32)
+    mask = np.full(32, ALL_RAYS)
+    mask[:3] = 0
+    tags = (rt.tags.curve_data, rt.tags.triangle_data)
+
+    def run(backend, points, ray_origin):
+        g = rt.CurveGeometry(points, geometry.radii, geometry.indices, basis="catmull_rom", control_point_count=4,
+                             end_caps="sphere")  # fmt: skip
+        structure = rt.build_primitive_structure([triangles, g])
+        ray = rt.Ray(ray_origin, jnp.asarray(direction), mask=jnp.asarray(mask))
+        return rt.Intersector(*tags, backend=backend).intersect(ray, structure)
+
+    args = (geometry.control_points, jnp.asarray(origin))
+    got, want = run("gpu", *args), run("portable", *args)
+    if not ON_GPU:
+        assert LAUNCHES, "the kernel did not run"
+    types = np.asarray(want.type)
+    assert (types == CURVE).sum() > 10 and (types[:3] == 0).all()
+    for name in want:
+        a, b = np.asarray(got[name]), np.asarray(want[name])
+        if a.dtype.kind == "f":
+            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6, err_msg=name)
+        else:
+            np.testing.assert_array_equal(a, b, err_msg=name)
+
+    def loss(backend):
+        def f(points, ray_origin):
+            result = run(backend, points, ray_origin)
+            hit = result.type == CURVE
+            return jnp.sum(jnp.where(hit, result.distance + result.curve_parameter, 0.0))
+
+        return jax.grad(f, argnums=(0, 1))(*args)
+
+    for a, b in zip(loss("gpu"), loss("portable"), strict=True):
+        assert np.isfinite(np.asarray(a)).all() and np.abs(np.asarray(b)).max() > 0
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-5)
+
+
+def _kernel_ir(monkeypatch, curves: tuple) -> str:
+    """Triton IR of ``trace_kernel`` of a primitive structure (``test_gpu_multihit._kernel_ir``), with the curve
+    options ``curves`` (``()``: no curves)."""
+    from test_gpu_multihit import _kernel_ir as ir_of
+
+    monkeypatch.setattr(gpu, "_Config", functools.partial(gpu._Config, curves=curves))
+    return ir_of(0, 0, False)
+
+
+@pytest.mark.skipif(INTERPRETED, reason="compiles the kernel's IR (outside the interpreter)")
+def test_kernel_ir_without_curves_reads_no_curve_rows(monkeypatch):
+    """Without curves the curve rows are a parameter that no instruction reads (the body is the kernel's
+    without curve support, up to the renumbering of arguments); with curves they are read."""
+    pytest.importorskip("triton")
+    body = lambda text: text.split("tt.func public @trace_kernel", 1)[1].split("\n", 1)[1]  # noqa: E731
+    assert "%curves_ptr" not in body(_kernel_ir(monkeypatch, ()))
+    assert "%curves_ptr" in body(_kernel_ir(monkeypatch, (8, 3, 3, 1e-3, True, True)))
