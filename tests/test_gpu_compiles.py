@@ -16,7 +16,7 @@ from jaxrt._src.traversal import gpu  # noqa: E402
 
 BASE = gpu._Config(False, 0, 24, 0, 8, gpu.DEFAULT_OPTIONS, False)
 
-#: ``_Config`` changes: instance levels, queries, culling, hit lists, keyframe motion and analytic leaves.
+#: ``_Config`` changes: instance levels, queries, culling, hit lists, keyframe motion, analytic and curve leaves.
 VARIANTS = {
     "static": {},
     "any hit, culling": dict(any_hit=True, cull=1),
@@ -30,6 +30,10 @@ VARIANTS = {
     "analytic spheres": dict(analytic=1),
     "analytic shapes and triangles, 1 level, any hit": dict(analytic=15, levels=1, roots=True, any_hit=True),
     "analytic disks, max_hits 4": dict(analytic=2, max_hits=4),
+    "round curves, sphere caps": dict(curves=(8, 3, 2, 1e-3, False, True)),
+    "round curves, disk caps, any hit": dict(curves=(4, 2, 1, 1e-3, True, False), any_hit=True),
+    "round curves, linear, max_hits 4": dict(curves=(1, 0, 0, 1e-3, False, False), max_hits=4),
+    "round curves, counting": dict(curves=(8, 3, 2, 1e-3, True, True), count=True),
 }
 
 
