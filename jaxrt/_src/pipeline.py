@@ -91,10 +91,10 @@ def kernel_declines(intersector: Any, geometry_info: tuple, backend: str = "gpu"
 
     The one place that decides their coverage (with :func:`jaxrt._src.traversal.gpu.unavailable_reason` and
     :func:`jaxrt._src.traversal.cpu.unavailable_reason` for the machine and the tags). Both cover the same
-    cases except keyframe motion, hit lists (``max_hits`` and counting) and bounding boxes whose functions are
-    the built-in ``rt.intersection_functions`` (recognised by identity), which only the GPU kernel traces.
-    Declined scenes take the portable traversal: curves, user intersection functions and filters call JAX
-    code per candidate, and the CPU loop keeps no hit lists.
+    cases, hit lists (``max_hits`` and counting) included, except keyframe motion and bounding boxes whose
+    functions are the built-in ``rt.intersection_functions`` (recognised by identity), which only the GPU
+    kernel traces. Declined scenes take the portable traversal: curves, user intersection functions and
+    filters call JAX code per candidate.
     """
     name = "CPU traversal" if backend == "cpu" else "GPU kernel"
     kinds = {g.kind for g in geometry_info}
@@ -106,8 +106,6 @@ def kernel_declines(intersector: Any, geometry_info: tuple, backend: str = "gpu"
             return reason
     if intersector.filter is not None and any(g.kind == "triangle" and not g.opaque for g in geometry_info):
         return f"filters on non-opaque geometry are not covered by the {name}"
-    if backend == "cpu" and (intersector.max_hits is not None or intersector.counts_all):
-        return f"multi-hit (max_hits) and counting are not covered by the {name}"
     if backend == "cpu" and (motion or any(g.motion for g in geometry_info)):
         return f"keyframe motion is not covered by the {name}"
     return None
@@ -208,7 +206,7 @@ def trace(intersector: Any, view: SceneView, rays: SanitizedRays, host: Any = No
         moving = {}  # keyframe motion (GPU kernel only): each ray's time and the triangle keyframes
         if view.layout.motion:
             moving = dict(time=detached(rays.time), leaf_motion=gpu.leaf_motion(view))
-        if backend == "gpu" and (intersector.max_hits is not None or intersector.counts_all):
+        if intersector.max_hits is not None or intersector.counts_all:
             moving.update(max_hits=0 if intersector.counts_all else intersector.max_hits)
             moving.update(count_all=intersector.counts_all)
         if backend == "gpu" and "bounding_box" in view.kinds:  # built-in functions (kernel_declines)

@@ -10,8 +10,9 @@ leaf, distance, instance chain and stats counters, decided with the same float o
 The intersector picks this path (``backend="auto"`` or ``"cpu"``) when :func:`unavailable_reason` returns
 ``None`` (the default JAX backend is the CPU and Numba imports) and
 :func:`jaxrt._src.pipeline.kernel_declines` finds the scene and intersector covered: triangles, flat or
-instanced at any depth, nearest and any hit, cull modes and windings, ray intervals, ray and instance masks,
-disabled rays and the stats counters, in float32 or float64.
+instanced at any depth, nearest and any hit, the ``K`` nearest hits (``max_hits``) and counting, cull modes
+and windings, ray intervals, ray and instance masks, disabled rays and the stats counters, in float32 or
+float64.
 
 Composition:
   - ``jax.jit``: the traversal is one host callback; Numba compiles once per dtype (not per shape), and
@@ -37,6 +38,7 @@ from jax import lax
 from jaxrt._src import numerics
 from jaxrt._src.primitives import box
 from jaxrt._src.traversal.scene import TraversalLayout, TraversalResult, TraversalScene
+from jaxrt._src.traversal.step import HitList
 
 __all__ = ["constants", "host_scene", "kernel_arguments", "trace_scene", "unavailable_reason"]
 
@@ -107,12 +109,14 @@ def constants(dtype: Any) -> np.ndarray:
 
 
 def _run(params: tuple, arrays: list[np.ndarray]) -> tuple[np.ndarray, ...]:
-    """Trace one scene's rays (flat ``(n, ...)`` arrays) with the compiled kernel."""
+    """Trace one scene's rays (flat ``(n, ...)`` arrays) with the compiled kernel; with a hit list
+    (``params[6]``) the hit distances, leaves, totals and chains follow the six outputs."""
     from jaxrt._src.traversal import cpu_kernel
 
     arrays = [np.ascontiguousarray(a) for a in arrays]
     origin = arrays[8]
     n, levels = origin.shape[0], params[2]
+    hit_list, k = bool(params[6]), params[7]
     dtype = origin.dtype
     out = (
         np.empty(n, dtype),
@@ -122,9 +126,16 @@ def _run(params: tuple, arrays: list[np.ndarray]) -> tuple[np.ndarray, ...]:
         np.empty(n, np.int32),
         np.empty(n, np.bool_),
     )
+    rows = n if hit_list else 0  # without a hit list the kernel writes none of these
+    hits = (
+        np.empty((rows, k), dtype),
+        np.empty((rows, k), np.int32),
+        np.empty(rows, np.int32),
+        np.empty((rows, k, levels), np.int32),
+    )
     consts, flags = constants(dtype), np.asarray(params, np.int64)
     counter = np.zeros(1, np.int64)
-    run = functools.partial(cpu_kernel.trace_rays, *arrays, consts, flags, counter, CHUNK, n, *out)
+    run = functools.partial(cpu_kernel.trace_rays, *arrays, consts, flags, counter, CHUNK, n, *out, *hits)
     workers = min(threads(), -(-n // MIN_TASK))
     # The kernel releases the GIL; each thread claims chunks of rays from the shared counter until none is
     # left, so uneven rays balance without a task per chunk. This thread is one of the workers.
@@ -132,7 +143,7 @@ def _run(params: tuple, arrays: list[np.ndarray]) -> tuple[np.ndarray, ...]:
     run()
     for helper in helpers:
         helper.result()
-    return out
+    return out + hits if hit_list else out
 
 
 def _host(params: tuple, wide: bool, hosted: tuple | None, *args: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -157,10 +168,10 @@ def _host(params: tuple, wide: bool, hosted: tuple | None, *args: np.ndarray) ->
             for i, a in enumerate(args)
         )
     out = _host_arrays(params, *args)
-    distance = out[0]
-    if wide:
-        distance = distance.view(np.uint32).reshape(*distance.shape, 2)
-    return (distance, *out[1:])
+    if wide:  # the float outputs (distances, and the hit distances of a hit list) as pairs of words
+        words = lambda a: a.view(np.uint32).reshape(*a.shape, 2)  # noqa: E731
+        out = tuple(words(a) if i in (0, 6) else a for i, a in enumerate(out))
+    return out
 
 
 def _at(address: int, shape: tuple[int, ...], dtype: str) -> np.ndarray:
@@ -240,9 +251,17 @@ def _host_arrays(params: tuple, *args: np.ndarray) -> tuple[np.ndarray, ...]:
     return tuple(np.stack(parts).reshape(*batch, *parts[0].shape) for parts in zip(*results, strict=True))
 
 
-def _params(layout: TraversalLayout, any_hit: bool, cull: int) -> tuple[int, ...]:
-    """The kernel's integer parameters (static)."""
-    return (int(layout.root), int(layout.primitive_leaves), int(layout.levels), int(layout.stack_size), int(bool(any_hit)), int(cull))  # fmt: skip
+def _params(
+    layout: TraversalLayout, any_hit: bool, cull: int, max_hits: int | None = None, count_all: bool = False
+) -> tuple[int, ...]:
+    """The kernel's integer parameters (static); a hit list where ``max_hits`` is given or ``count_all``."""
+    hit_list = max_hits is not None or count_all
+    if hit_list and (any_hit or (count_all and max_hits) or (not count_all and (max_hits or 0) < 1)):
+        raise ValueError(
+            "traversal.cpu: hit lists need max_hits >= 1 (0 or None with count_all) and no any_hit "
+            f"(got max_hits={max_hits}, count_all={count_all}, any_hit={any_hit})"
+        )
+    return (int(layout.root), int(layout.primitive_leaves), int(layout.levels), int(layout.stack_size), int(bool(any_hit)), int(cull), int(hit_list), int(max_hits or 0), int(bool(count_all)))  # fmt: skip
 
 
 def _arguments(scene: TraversalScene, origin, direction, t_min, t_max, enabled, mask, floats) -> tuple:
@@ -270,7 +289,13 @@ def kernel_arguments(structure: Any, rays: Any, intersector: Any) -> tuple[tuple
 
     view = scene_view(structure)
     ray = SanitizedRays(rays)
-    params = _params(view.layout, intersector.accept_any_intersection, intersector.cull)
+    params = _params(
+        view.layout,
+        intersector.accept_any_intersection,
+        intersector.cull,
+        0 if intersector.counts_all else intersector.max_hits,
+        intersector.counts_all,
+    )
     args = _arguments(
         view.traversal, ray.origin, ray.direction, ray.t_min, ray.t_max, ray.enabled, ray.mask, lambda a: a
     )
@@ -289,6 +314,8 @@ def trace_scene(
     *,
     any_hit: bool,
     cull: int,
+    max_hits: int | None = None,
+    count_all: bool = False,
     host: Any = None,
 ) -> TraversalResult:
     """Trace rays through a scene of any instance depth with the compiled CPU traversal.
@@ -304,18 +331,24 @@ def trace_scene(
       any_hit: stop at the first accepted hit.
       cull: 0 culls nothing, +1 clockwise triangles, -1 counterclockwise ones; below instances the sense is
         multiplied by the chain's ``instance_facing``.
+      max_hits: static ``K``: also keep the ``K`` nearest hits of each ray in ``hits`` (a
+        :class:`~jaxrt._src.traversal.step.HitList`, as the portable traversal's ``max_hits``, with each hit's
+        instance chain below instances; not with ``any_hit``). ``0`` with ``count_all``.
+      count_all: static; count every accepted hit in ``hits.total`` (no culling), at any instance depth.
       host: ``None``, or the addresses of ``scene``'s node and triangle arrays and maybe of the rays
         (:func:`host_scene`): the arrays of a primitive structure and rays passed to the running program,
         read in place (a disabled ray's own values are read, and skipped).
 
     Returns:
-      The portable traversal's :class:`~jaxrt._src.traversal.scene.TraversalResult`.
+      The portable traversal's :class:`~jaxrt._src.traversal.scene.TraversalResult`; with ``max_hits`` or
+      ``count_all`` its ``hits`` too (then ``leaf`` is the first hit and ``distance`` the culling bound).
     """
     dtype = scene.node_lower.dtype
     if origin.dtype != dtype:
         raise ValueError(f"traversal.cpu.trace_scene: rays are {origin.dtype} but the scene is {dtype}")
     levels = int(layout.levels)
-    params = _params(layout, any_hit, cull)
+    params = _params(layout, any_hit, cull, max_hits, count_all)
+    hit_list, k = bool(params[6]), params[7]
     detached = lax.stop_gradient
     wide = jnp.dtype(dtype).itemsize == 8
     words = lambda a: lax.bitcast_convert_type(detached(a).astype(dtype), jnp.uint32) if wide else detached(a)  # noqa: E731
@@ -329,6 +362,13 @@ def trace_scene(
         jax.ShapeDtypeStruct((n,), jnp.int32),
         jax.ShapeDtypeStruct((n,), jnp.bool_),
     )
+    if hit_list:
+        shapes += (
+            jax.ShapeDtypeStruct((n, k, 2), jnp.uint32) if wide else jax.ShapeDtypeStruct((n, k), dtype),
+            jax.ShapeDtypeStruct((n, k), jnp.int32),
+            jax.ShapeDtypeStruct((n,), jnp.int32),
+            jax.ShapeDtypeStruct((n, k, levels), jnp.int32),
+        )
     hosted = None
     if host is not None:  # arrays read in place (see host_scene): the scene's, and maybe the rays'
         in_place = (0, 1, 2, 3) if host.shape[0] == 4 else (0, 1, 2, 3, 8, 9, 10, 11)
@@ -345,5 +385,9 @@ def trace_scene(
         args = (jnp.asarray(host, jnp.uint32), anchors, *(a for i, a in enumerate(args) if i not in in_place))
     callback = functools.partial(_host, params, wide, hosted)
     out = jax.pure_callback(callback, shapes, *args, vmap_method="expand_dims")
-    distance = lax.bitcast_convert_type(out[0], dtype) if wide else out[0]
-    return TraversalResult(distance, *out[1:])
+    floats = lambda a: lax.bitcast_convert_type(a, dtype) if wide else a  # noqa: E731
+    hits = None
+    if hit_list:
+        distances, leaves, total, chains = out[6:]
+        hits = HitList(floats(distances), leaves, total, chains if levels else None)
+    return TraversalResult(floats(out[0]), *out[1:6], hits)

@@ -194,20 +194,51 @@ def _row(m0, m1, m2, x0, x1, x2):
     return _fma(m2, x2, _fma(m1, x1, m0 * x0))
 
 
+@numba.njit(cache=True)
+def _insert(hit_distance, hit_leaf, hit_chains, k, t, leaf, chain, level, levels):
+    """Insert a hit at distance ``t`` into the sorted list of ``k`` hits after those at the same distance (the
+    portable ``_insert``), with the path ``chain[:level]``; returns 1 (the hit is counted even when it falls
+    past the list's end)."""
+    position = 0
+    for h in range(k):
+        if hit_distance[h] <= t:
+            position += 1
+    if position < k:
+        for h in range(k - 1, position, -1):
+            hit_distance[h] = hit_distance[h - 1]
+            hit_leaf[h] = hit_leaf[h - 1]
+            for j in range(levels):
+                hit_chains[h, j] = hit_chains[h - 1, j]
+        hit_distance[position] = t
+        hit_leaf[position] = leaf
+        for j in range(levels):
+            hit_chains[position, j] = chain[j] if j < level else -1
+    return 1
+
+
 @numba.njit(nogil=True, cache=True)
 def trace_rays(
     node_lower, node_upper, node_children, leaf_triangle, world_to_object, child_root, instance_facing,
     instance_mask, origin, direction, t_min_all, t_max_all, enabled, mask_all, consts, params, counter, chunk, end, out_distance,
-    out_leaf, out_chain, out_visited, out_tested, out_overflow,
+    out_leaf, out_chain, out_visited, out_tested, out_overflow, out_hit_distance, out_hit_leaf, out_hit_total,
+    out_hit_chain,
 ):  # fmt: skip
     """Trace rays ``0`` to ``end``; results go to the ``out_*`` arrays. Runs without the GIL: every thread that
     calls it with the same ``counter`` (``int64[1]``, starting at 0) claims the next ``chunk`` rays until all are
     claimed.
 
-    ``params`` holds ``root, primitive_leaves, levels, stack_size, any_hit, cull``; ``consts`` the float
-    constants in the geometry's dtype (:func:`jaxrt._src.traversal.cpu.constants`).
+    ``params`` holds ``root, primitive_leaves, levels, stack_size, any_hit, cull, hit_list, max_hits,
+    count_all``; ``consts`` the float constants in the geometry's dtype
+    (:func:`jaxrt._src.traversal.cpu.constants`). With ``hit_list`` the ``K = max_hits`` nearest hits go to
+    ``out_hit_*`` (``(end, K)``, ``(end, K)``, ``(end,)``, ``(end, K, levels)``) as the portable
+    :class:`~jaxrt._src.traversal.step.HitList` keeps them; ``out_distance`` is then the culling distance and
+    ``out_leaf`` the first hit.
     """
     root, primitive_leaves, levels, stack_size, any_hit, cull = params[0], params[1], params[2], params[3], params[4] != 0, params[5]  # fmt: skip
+    hit_list, k, count_all = params[6] != 0, params[7], params[8] != 0
+    hit_distance = np.empty(max(k, 1), consts.dtype)
+    hit_leaf = np.empty(max(k, 1), np.int32)
+    hit_chains = np.empty((max(k, 1), max(levels, 1)), np.int32)
     stack = np.empty(max(stack_size, 1), np.int32)
     base = np.zeros(max(levels, 1), np.int32)
     chain = np.full(max(levels, 1), -1, np.int32)
@@ -232,6 +263,13 @@ def trace_rays(
                 out_visited[i] = 0
                 out_tested[i] = 0
                 out_overflow[i] = False
+                if hit_list:
+                    for h in range(k):
+                        out_hit_distance[i, h] = inf
+                        out_hit_leaf[i, h] = -1
+                        for j in range(levels):
+                            out_hit_chain[i, h, j] = -1
+                    out_hit_total[i] = 0
                 continue
             t_min = t_min_all[i]
             distance = t_max_all[i]
@@ -249,6 +287,13 @@ def trace_rays(
             overflow = False
             for j in range(levels):
                 hit_chain[j] = -1
+            total = 0
+            if hit_list:
+                for h in range(k):
+                    hit_distance[h] = inf
+                    hit_leaf[h] = -1
+                    for j in range(levels):
+                        hit_chains[h, j] = -1
             while True:
                 visited += 1
                 un = np.uint64(node)
@@ -291,6 +336,8 @@ def trace_rays(
                         g = min(max(k1 - primitive_leaves, 0), instances - 1)
                         e1 = -1 - g
                         inner1 = hit1 and (instance_mask[g] & ray_mask) != 0
+                culling = distance
+                first = leaf
                 if ok0 or ok1:
                     if t1 < t0:
                         best_t, best_leaf = t1, k1
@@ -302,6 +349,17 @@ def trace_rays(
                         leaf = best_leaf
                         for j in range(levels):
                             hit_chain[j] = chain[j] if j < level else -1
+                if hit_list:
+                    # Both leaves' hits into the sorted list (each after the hits at its distance); the culling
+                    # distance becomes the K-th hit's once more than K are known (never when counting).
+                    distance = culling
+                    if ok0:
+                        total += _insert(hit_distance, hit_leaf, hit_chains, k, t0, k0, chain, level, levels)
+                    if ok1:
+                        total += _insert(hit_distance, hit_leaf, hit_chains, k, t1, k1, chain, level, levels)
+                    if not count_all and k > 0 and total > k:
+                        distance = hit_distance[k - 1]
+                    leaf = hit_leaf[0] if k > 0 else first
                 finished = False
                 if inner0 and inner1:
                     if near0 <= near1:
@@ -368,6 +426,13 @@ def trace_rays(
             out_leaf[i] = leaf
             for j in range(levels):
                 out_chain[i, j] = hit_chain[j]
+            if hit_list:
+                for h in range(k):
+                    out_hit_distance[i, h] = hit_distance[h]
+                    out_hit_leaf[i, h] = hit_leaf[h]
+                    for j in range(levels):
+                        out_hit_chain[i, h, j] = hit_chains[h, j]
+                out_hit_total[i] = total
             out_visited[i] = visited
             out_tested[i] = tested
             out_overflow[i] = overflow
