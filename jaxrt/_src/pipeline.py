@@ -113,11 +113,10 @@ def kernel_declines(intersector: Any, geometry_info: tuple, backend: str = "gpu"
 
 def _analytic_declines(intersector: Any, backend: str, motion: bool) -> str | None:
     """Why the compiled traversal of ``backend`` does not cover the bounding-box geometry of a scene traced
-    with ``intersector`` (``None``: the GPU kernel does, every function being built-in)."""
+    with ``intersector`` (``None``: it does, every function being built-in)."""
     from jaxrt._src.primitives import analytic
 
-    if backend == "cpu":
-        return "bounding-box geometry (intersection functions) is not covered by the CPU traversal"
+    name = "CPU traversal" if backend == "cpu" else "GPU kernel"
     functions = intersector.intersection_functions or ()
     user = [
         f"geometry {index}: {getattr(fn, '__name__', repr(fn))}"
@@ -127,11 +126,11 @@ def _analytic_declines(intersector: Any, backend: str, motion: bool) -> str | No
     if user or not functions:
         listed = f" ({', '.join(user)})" if user else ""
         return (
-            f"bounding-box geometry with user intersection functions{listed} is not covered by the GPU kernel "
+            f"bounding-box geometry with user intersection functions{listed} is not covered by the {name} "
             "(it traces rt.intersection_functions.sphere, disk and capped_cylinder)"
         )
     if motion:
-        return "bounding-box geometry in a scene with keyframe motion is not covered by the GPU kernel"
+        return f"bounding-box geometry in a scene with keyframe motion is not covered by the {name}"
     return None
 
 
@@ -209,8 +208,9 @@ def trace(intersector: Any, view: SceneView, rays: SanitizedRays, host: Any = No
         if intersector.max_hits is not None or intersector.counts_all:
             moving.update(max_hits=0 if intersector.counts_all else intersector.max_hits)
             moving.update(count_all=intersector.counts_all)
-        if backend == "gpu" and "bounding_box" in view.kinds:  # built-in functions (kernel_declines)
-            moving.update(analytic=gpu.analytic_leaves(intersector.intersection_functions, view))
+        if "bounding_box" in view.kinds:  # built-in functions (kernel_declines)
+            dtype = view.traversal.node_lower.dtype if backend == "cpu" else jnp.float32
+            moving.update(analytic=gpu.analytic_leaves(intersector.intersection_functions, view, dtype))
         return (cpu if backend == "cpu" else gpu).trace_scene(
             jax.tree_util.tree_map(detached, view.traversal),
             view.layout,

@@ -37,16 +37,19 @@ from jax import lax
 
 from jaxrt._src import numerics
 from jaxrt._src.primitives import box
+from jaxrt._src.traversal import packed
 from jaxrt._src.traversal.scene import TraversalLayout, TraversalResult, TraversalScene
 from jaxrt._src.traversal.step import HitList
 
 __all__ = ["constants", "host_scene", "kernel_arguments", "trace_scene", "unavailable_reason"]
 
 #: Base ranks of the callback's arguments (scene arrays, then rays); leading axes beyond them are vmap axes.
-_SCENE_RANKS = (3, 3, 2, 3, 3, 1, 1, 1)
+_SCENE_RANKS = (3, 3, 2, 3, 3, 1, 1, 1, 2)
 _RAY_RANKS = (2, 2, 1, 1, 1, 1)
-#: Positions of the float arguments (scene geometry and rays).
-_FLOAT_ARGS = (0, 1, 3, 4, 8, 9, 10, 11)
+#: Position of the first ray argument.
+_RAYS = len(_SCENE_RANKS)
+#: Positions of the float arguments (scene geometry, analytic rows and rays).
+_FLOAT_ARGS = (0, 1, 3, 4, 8, 9, 10, 11, 12)
 #: Rays a thread claims at a time (rays cost unevenly: small claims keep every thread busy to the end).
 CHUNK = 32
 #: Fewest rays per thread worth starting one.
@@ -114,7 +117,7 @@ def _run(params: tuple, arrays: list[np.ndarray]) -> tuple[np.ndarray, ...]:
     from jaxrt._src.traversal import cpu_kernel
 
     arrays = [np.ascontiguousarray(a) for a in arrays]
-    origin = arrays[8]
+    origin = arrays[_RAYS]
     n, levels = origin.shape[0], params[2]
     hit_list, k = bool(params[6]), params[7]
     dtype = origin.dtype
@@ -239,10 +242,12 @@ def _host_arrays(params: tuple, *args: np.ndarray) -> tuple[np.ndarray, ...]:
     batch = np.broadcast_shapes(*lead)
     if not batch:
         return _run(params, args)
-    scenes = int(np.prod(np.broadcast_shapes(*lead[:8]), dtype=np.int64))
+    scenes = int(np.prod(np.broadcast_shapes(*lead[:_RAYS]), dtype=np.int64))
     if scenes == 1:  # rays batched over one scene: one parallel call over all of them
-        scene = [a.reshape(a.shape[a.ndim - r :]) for a, r in zip(args[:8], _SCENE_RANKS, strict=True)]
-        rays = [np.broadcast_to(a, batch + a.shape[a.ndim - r :]) for a, r in zip(args[8:], _RAY_RANKS, strict=True)]
+        scene = [a.reshape(a.shape[a.ndim - r :]) for a, r in zip(args[:_RAYS], _SCENE_RANKS, strict=True)]
+        rays = [
+            np.broadcast_to(a, batch + a.shape[a.ndim - r :]) for a, r in zip(args[_RAYS:], _RAY_RANKS, strict=True)
+        ]
         n = rays[0].shape[-2]
         out = _run(params, scene + [a.reshape(-1, *a.shape[len(batch) + 1 :]) for a in rays])
         return tuple(a.reshape(*batch, n, *a.shape[1:]) for a in out)
@@ -252,20 +257,29 @@ def _host_arrays(params: tuple, *args: np.ndarray) -> tuple[np.ndarray, ...]:
 
 
 def _params(
-    layout: TraversalLayout, any_hit: bool, cull: int, max_hits: int | None = None, count_all: bool = False
+    layout: TraversalLayout,
+    any_hit: bool,
+    cull: int,
+    max_hits: int | None = None,
+    count_all: bool = False,
+    analytic: bool = False,
 ) -> tuple[int, ...]:
-    """The kernel's integer parameters (static); a hit list where ``max_hits`` is given or ``count_all``."""
+    """The kernel's integer parameters (static); a hit list where ``max_hits`` is given or ``count_all``;
+    ``analytic``: the scene has analytic leaves."""
     hit_list = max_hits is not None or count_all
     if hit_list and (any_hit or (count_all and max_hits) or (not count_all and (max_hits or 0) < 1)):
         raise ValueError(
             "traversal.cpu: hit lists need max_hits >= 1 (0 or None with count_all) and no any_hit "
             f"(got max_hits={max_hits}, count_all={count_all}, any_hit={any_hit})"
         )
-    return (int(layout.root), int(layout.primitive_leaves), int(layout.levels), int(layout.stack_size), int(bool(any_hit)), int(cull), int(hit_list), int(max_hits or 0), int(bool(count_all)))  # fmt: skip
+    return (int(layout.root), int(layout.primitive_leaves), int(layout.levels), int(layout.stack_size), int(bool(any_hit)), int(cull), int(hit_list), int(max_hits or 0), int(bool(count_all)), int(bool(analytic)))  # fmt: skip
 
 
-def _arguments(scene: TraversalScene, origin, direction, t_min, t_max, enabled, mask, floats) -> tuple:
-    """The callback's arguments in the kernel's order; ``floats`` converts the float ones."""
+def _arguments(scene: TraversalScene, origin, direction, t_min, t_max, enabled, mask, floats, rows=None) -> tuple:
+    """The callback's arguments in the kernel's order; ``floats`` converts the float ones; ``rows``: the
+    analytic leaves' rows (``None``: a placeholder row)."""
+    if rows is None:
+        rows = jnp.zeros((1, packed.TRIANGLE_WIDTH), scene.node_lower.dtype)
     return (
         floats(scene.node_lower),
         floats(scene.node_upper),
@@ -275,6 +289,7 @@ def _arguments(scene: TraversalScene, origin, direction, t_min, t_max, enabled, 
         scene.instance_child_root.astype(jnp.int32),
         scene.instance_facing.astype(jnp.int32),
         scene.instance_mask.astype(jnp.uint32),
+        floats(rows.astype(scene.node_lower.dtype)),
         *(floats(a) for a in (origin, direction, t_min, t_max)),
         enabled.astype(bool),
         mask.astype(jnp.uint32),
@@ -286,18 +301,23 @@ def kernel_arguments(structure: Any, rays: Any, intersector: Any) -> tuple[tuple
     intersector's callback would for ``rays`` (a :class:`jaxrt.Ray` of shape ``(N,)``): for benchmarks."""
     from jaxrt._src.pipeline import SanitizedRays
     from jaxrt._src.scene_view import scene_view
+    from jaxrt._src.traversal import gpu
 
     view = scene_view(structure)
     ray = SanitizedRays(rays)
+    dtype = view.traversal.node_lower.dtype
+    analytic = gpu.analytic_leaves(intersector.intersection_functions, view, dtype)
     params = _params(
         view.layout,
         intersector.accept_any_intersection,
         intersector.cull,
         0 if intersector.counts_all else intersector.max_hits,
         intersector.counts_all,
+        analytic is not None,
     )
+    rows = None if analytic is None else analytic.rows
     args = _arguments(
-        view.traversal, ray.origin, ray.direction, ray.t_min, ray.t_max, ray.enabled, ray.mask, lambda a: a
+        view.traversal, ray.origin, ray.direction, ray.t_min, ray.t_max, ray.enabled, ray.mask, lambda a: a, rows
     )
     return params, [np.ascontiguousarray(a) for a in args]
 
@@ -316,6 +336,7 @@ def trace_scene(
     cull: int,
     max_hits: int | None = None,
     count_all: bool = False,
+    analytic: Any = None,
     host: Any = None,
 ) -> TraversalResult:
     """Trace rays through a scene of any instance depth with the compiled CPU traversal.
@@ -335,6 +356,9 @@ def trace_scene(
         :class:`~jaxrt._src.traversal.step.HitList`, as the portable traversal's ``max_hits``, with each hit's
         instance chain below instances; not with ``any_hit``). ``0`` with ``count_all``.
       count_all: static; count every accepted hit in ``hits.total`` (no culling), at any instance depth.
+      analytic: the parameter rows of the scene's analytic leaves in the scene's dtype
+        (:func:`jaxrt._src.traversal.gpu.analytic_leaves`): bounding-box leaves tested as the built-in
+        intersection functions test them.
       host: ``None``, or the addresses of ``scene``'s node and triangle arrays and maybe of the rays
         (:func:`host_scene`): the arrays of a primitive structure and rays passed to the running program,
         read in place (a disabled ray's own values are read, and skipped).
@@ -347,12 +371,13 @@ def trace_scene(
     if origin.dtype != dtype:
         raise ValueError(f"traversal.cpu.trace_scene: rays are {origin.dtype} but the scene is {dtype}")
     levels = int(layout.levels)
-    params = _params(layout, any_hit, cull, max_hits, count_all)
+    params = _params(layout, any_hit, cull, max_hits, count_all, analytic is not None)
     hit_list, k = bool(params[6]), params[7]
     detached = lax.stop_gradient
     wide = jnp.dtype(dtype).itemsize == 8
     words = lambda a: lax.bitcast_convert_type(detached(a).astype(dtype), jnp.uint32) if wide else detached(a)  # noqa: E731
-    args = _arguments(scene, origin, direction, t_min, t_max, enabled, mask, words)
+    rows = None if analytic is None else analytic.rows
+    args = _arguments(scene, origin, direction, t_min, t_max, enabled, mask, words, rows)
     n = origin.shape[0]
     shapes = (
         jax.ShapeDtypeStruct((n, 2), jnp.uint32) if wide else jax.ShapeDtypeStruct((n,), dtype),
@@ -371,7 +396,7 @@ def trace_scene(
         )
     hosted = None
     if host is not None:  # arrays read in place (see host_scene): the scene's, and maybe the rays'
-        in_place = (0, 1, 2, 3) if host.shape[0] == 4 else (0, 1, 2, 3, 8, 9, 10, 11)
+        in_place = (0, 1, 2, 3) if host.shape[0] == 4 else (0, 1, 2, 3, 9, 10, 11, 12)
         sources = (scene.node_lower, scene.node_upper, scene.node_children, scene.leaf_triangle, origin, direction, t_min, t_max)  # fmt: skip
         hosted = tuple(
             (i, tuple(a.shape), jnp.dtype(a.dtype).name)
