@@ -91,10 +91,10 @@ def kernel_declines(intersector: Any, geometry_info: tuple, backend: str = "gpu"
 
     The one place that decides their coverage (with :func:`jaxrt._src.traversal.gpu.unavailable_reason` and
     :func:`jaxrt._src.traversal.cpu.unavailable_reason` for the machine and the tags). Both cover the same
-    cases, hit lists (``max_hits`` and counting) included, except keyframe motion and bounding boxes whose
-    functions are the built-in ``rt.intersection_functions`` (recognised by identity), which only the GPU
-    kernel traces. Declined scenes take the portable traversal: curves, user intersection functions and
-    filters call JAX code per candidate.
+    cases: triangles, bounding boxes whose functions are the built-in ``rt.intersection_functions``
+    (recognised by identity) and hit lists (``max_hits`` and counting), except keyframe motion, which only
+    the GPU kernel traces. Declined scenes take the portable traversal: curves, user intersection functions
+    and filters call JAX code per candidate.
     """
     name = "CPU traversal" if backend == "cpu" else "GPU kernel"
     kinds = {g.kind for g in geometry_info}

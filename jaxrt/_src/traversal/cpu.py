@@ -10,9 +10,10 @@ leaf, distance, instance chain and stats counters, decided with the same float o
 The intersector picks this path (``backend="auto"`` or ``"cpu"``) when :func:`unavailable_reason` returns
 ``None`` (the default JAX backend is the CPU and Numba imports) and
 :func:`jaxrt._src.pipeline.kernel_declines` finds the scene and intersector covered: triangles, flat or
-instanced at any depth, nearest and any hit, the ``K`` nearest hits (``max_hits``) and counting, cull modes
-and windings, ray intervals, ray and instance masks, disabled rays and the stats counters, in float32 or
-float64.
+instanced at any depth, bounding boxes with the built-in sphere, disk and capped cylinder functions (their
+distances equal the portable path's to rounding: XLA contracts some of their multiply-adds, the loop none),
+nearest and any hit, the ``K`` nearest hits (``max_hits``) and counting, cull modes and windings, ray
+intervals, ray and instance masks, disabled rays and the stats counters, in float32 or float64.
 
 Composition:
   - ``jax.jit``: the traversal is one host callback; Numba compiles once per dtype (not per shape), and
