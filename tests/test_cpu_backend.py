@@ -391,10 +391,13 @@ def test_auto_picks_the_cpu_traversal_and_forced_backends_explain_themselves(mon
     assert pipeline.resolve_backend(rt.Intersector(backend="portable")) == "portable"
     structure = _build([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
     rays = rt.Ray([0.2, 0.2, 1.0], [0.0, 0.0, -1.0])
-    with pytest.raises(ValueError, match="backend='cpu' cannot run: multi-hit"):
-        rt.Intersector(backend="cpu", max_hits=2).intersect(rays, structure)
-    # Declined cases under "auto" take the portable traversal (they are traced in test_multi_hit.py).
-    assert pipeline.kernel_declines(rt.Intersector(max_hits=2), structure.geometry_info, "cpu") is not None
+    assert pipeline.kernel_declines(rt.Intersector(max_hits=2), structure.geometry_info, "cpu") is None
+    clipped = rt.build_primitive_structure(rt.TriangleGeometry([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], opaque=False))
+    keep_all = lambda candidate: jnp.bool_(True)  # noqa: E731
+    with pytest.raises(ValueError, match="backend='cpu' cannot run: filters on non-opaque geometry"):
+        rt.Intersector(backend="cpu", filter=keep_all).intersect(rays, clipped)
+    # Declined cases under "auto" take the portable traversal (they are traced in test_custom_geometry.py).
+    assert pipeline.kernel_declines(rt.Intersector(filter=keep_all), clipped.geometry_info, "cpu") is not None
     monkeypatch.setattr(jax, "default_backend", lambda: "tpu")
     with pytest.raises(ValueError, match="backend='cpu' cannot run: the default JAX backend is 'tpu'"):
         rt.Intersector(backend="cpu").intersect(rays, structure)

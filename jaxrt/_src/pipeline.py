@@ -94,11 +94,11 @@ def kernel_declines(
 
     The one place that decides their coverage (with :func:`jaxrt._src.traversal.gpu.unavailable_reason` and
     :func:`jaxrt._src.traversal.cpu.unavailable_reason` for the machine and the tags). Both cover the same
-    cases except keyframe motion, hit lists (``max_hits`` and counting), round curves in a static primitive
-    structure and bounding boxes whose functions are the built-in ``rt.intersection_functions`` (recognised by
-    identity), which only the GPU kernel traces (curves and boxes in one scene are not combined there).
-    Declined scenes take the portable traversal: flat curves, curves below instances or with motion, user
-    intersection functions and filters call JAX code per candidate, and the CPU loop keeps no hit lists.
+    cases: triangles, bounding boxes whose functions are the built-in ``rt.intersection_functions``
+    (recognised by identity) and hit lists (``max_hits`` and counting), except keyframe motion and round curves
+    in a static primitive structure, which only the GPU kernel traces (curves and boxes in one structure are
+    not combined there). Declined scenes take the portable traversal: flat curves, curves below instances or
+    with motion, user intersection functions and filters call JAX code per candidate.
     """
     from jaxrt._src.curves import CurveType
 
@@ -124,8 +124,6 @@ def kernel_declines(
             return reason
     if intersector.filter is not None and any(g.kind == "triangle" and not g.opaque for g in geometry_info):
         return f"filters on non-opaque geometry are not covered by the {name}"
-    if backend == "cpu" and (intersector.max_hits is not None or intersector.counts_all):
-        return f"multi-hit (max_hits) and counting are not covered by the {name}"
     if backend == "cpu" and (motion or any(g.motion for g in geometry_info)):
         return f"keyframe motion is not covered by the {name}"
     return None
@@ -133,11 +131,10 @@ def kernel_declines(
 
 def _analytic_declines(intersector: Any, backend: str, motion: bool) -> str | None:
     """Why the compiled traversal of ``backend`` does not cover the bounding-box geometry of a scene traced
-    with ``intersector`` (``None``: the GPU kernel does, every function being built-in)."""
+    with ``intersector`` (``None``: it does, every function being built-in)."""
     from jaxrt._src.primitives import analytic
 
-    if backend == "cpu":
-        return "bounding-box geometry (intersection functions) is not covered by the CPU traversal"
+    name = "CPU traversal" if backend == "cpu" else "GPU kernel"
     functions = intersector.intersection_functions or ()
     user = [
         f"geometry {index}: {getattr(fn, '__name__', repr(fn))}"
@@ -147,11 +144,11 @@ def _analytic_declines(intersector: Any, backend: str, motion: bool) -> str | No
     if user or not functions:
         listed = f" ({', '.join(user)})" if user else ""
         return (
-            f"bounding-box geometry with user intersection functions{listed} is not covered by the GPU kernel "
+            f"bounding-box geometry with user intersection functions{listed} is not covered by the {name} "
             "(it traces rt.intersection_functions.sphere, disk and capped_cylinder)"
         )
     if motion:
-        return "bounding-box geometry in a scene with keyframe motion is not covered by the GPU kernel"
+        return f"bounding-box geometry in a scene with keyframe motion is not covered by the {name}"
     return None
 
 
@@ -228,11 +225,12 @@ def trace(intersector: Any, view: SceneView, rays: SanitizedRays, host: Any = No
             moving = dict(time=detached(rays.time), leaf_motion=gpu.leaf_motion(view))
         if backend == "gpu" and "curve" in view.kinds:  # round curves: their rows and the static test options
             moving.update(curves=gpu.curve_leaves(view, leaf_tests.curve_configuration(intersector, view)))
-        if backend == "gpu" and (intersector.max_hits is not None or intersector.counts_all):
+        if intersector.max_hits is not None or intersector.counts_all:
             moving.update(max_hits=0 if intersector.counts_all else intersector.max_hits)
             moving.update(count_all=intersector.counts_all)
-        if backend == "gpu" and "bounding_box" in view.kinds:  # built-in functions (kernel_declines)
-            moving.update(analytic=gpu.analytic_leaves(intersector.intersection_functions, view))
+        if "bounding_box" in view.kinds:  # built-in functions (kernel_declines)
+            dtype = view.traversal.node_lower.dtype if backend == "cpu" else jnp.float32
+            moving.update(analytic=gpu.analytic_leaves(intersector.intersection_functions, view, dtype))
         return (cpu if backend == "cpu" else gpu).trace_scene(
             jax.tree_util.tree_map(detached, view.traversal),
             view.layout,

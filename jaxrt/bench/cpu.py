@@ -12,9 +12,11 @@ keeping the best round compares the tracers under the same load):
 
 jaxrt runs with each thread count of ``--threads`` (``JAXRT_CPU_THREADS``; default 1 and every core). The
 ``per core / embree`` column divides the ``intersect`` rate by the thread count and by Embree's one-thread
-rate. ``--quality`` picks the build (``fast``: the LBVH, the default; ``high``: clustering, closer to the
+rate. ``--queries`` adds hit lists: ``k4`` (``max_hits=4``) and ``count`` (``rt.count_intersections``), where
+the third tracer is ``portable``, the same call on the portable traversal (``backend="portable"``, which
+runs on one thread), in place of Embree (embreex exposes no multi-hit or counting query). ``--quality`` picks the build (``fast``: the LBVH, the default; ``high``: clustering, closer to the
 SAH-quality trees Embree builds); several qualities give a row each. Flags: ``--scenes``, ``--rays``,
-``--repeats``, ``--threads``, ``--quality``, ``--data-dir``, ``--json PATH``.
+``--repeats``, ``--threads``, ``--quality``, ``--queries``, ``--data-dir``, ``--json PATH``.
 """
 
 from __future__ import annotations
@@ -44,6 +46,29 @@ def _best(fn: Callable[[], Any], best: float) -> float:
     return min(best, time.perf_counter() - start)
 
 
+#: The queries ``--queries`` picks from: intersector options, or ``None`` for ``rt.count_intersections``.
+QUERIES: dict[str, dict[str, Any] | None] = {
+    "closest": {},
+    "any": {"accept_any_intersection": True},
+    "k4": {"max_hits": 4},
+    "count": None,
+}
+
+
+def _intersector(query: str, backend: str) -> rt.Intersector:
+    if QUERIES[query] is None:
+        from jaxrt._src.intersector import _CountingIntersector
+
+        return _CountingIntersector(backend=backend)  # what rt.count_intersections traces with
+    return rt.Intersector(backend=backend, **QUERIES[query])
+
+
+def _query_call(query: str, backend: str, structure: Any, rays: rt.Ray) -> Callable[[], Any]:
+    if QUERIES[query] is None:
+        return functools.partial(rt.count_intersections, rays, structure, rt.Intersector(backend=backend))
+    return functools.partial(_intersector(query, backend).intersect, rays, structure)
+
+
 def _kernel_call(structure: Any, intersector: rt.Intersector, rays: rt.Ray) -> Callable[[], Any]:
     """The compiled traversal alone on host arrays (the arguments the intersector's callback receives)."""
     from jaxrt._src.traversal import cpu
@@ -59,8 +84,10 @@ def measure_scene(
     threads: Sequence[int],
     data_dir: str | None = None,
     quality: str = "fast",
+    queries: Sequence[str] = ("closest", "any"),
 ) -> list[dict[str, Any]]:
-    """Rows of Mrays/s (best of ``repeats`` alternating rounds) for one scene built with ``quality``."""
+    """Rows of Mrays/s (best of ``repeats`` alternating rounds) for one scene built with ``quality``, one per
+    ray set and query (:data:`QUERIES`)."""
     scene = load_scene(name, data_dir=data_dir)
     structure = rt.build_primitive_structure(rt.TriangleGeometry(scene.vertices, scene.indices), quality=quality)
     embree = None
@@ -71,15 +98,16 @@ def measure_scene(
     for kind in ("primary", "diffuse"):
         batch = RAY_KINDS[kind](scene, n_rays, 0)
         rays = batch.to_jaxrt()
-        for any_hit in (False, True):
-            intersector = rt.Intersector(accept_any_intersection=any_hit, backend="cpu")
-            kernel = _kernel_call(structure, intersector, rays)
+        for query in queries:
+            kernel = _kernel_call(structure, _intersector(query, "cpu"), rays)
             calls: dict[str, Callable[[], Any]] = {}
             for count in threads:
                 calls[f"kernel {count}t"] = kernel
-                calls[f"intersect {count}t"] = functools.partial(intersector.intersect, rays, structure)
-            if embree is not None:
-                calls["embree 1t"] = functools.partial(embree.any_hit if any_hit else embree.closest, batch)
+                calls[f"intersect {count}t"] = _query_call(query, "cpu", structure, rays)
+            if query in ("k4", "count"):  # no Embree query to compare: the portable traversal
+                calls["portable 1t"] = _query_call(query, "portable", structure, rays)
+            elif embree is not None:
+                calls["embree 1t"] = functools.partial(embree.any_hit if query == "any" else embree.closest, batch)
             best = dict.fromkeys(calls, float("inf"))
             for round_ in range(repeats + 1):  # round 0 warms up (compiles)
                 for key, fn in calls.items():
@@ -88,7 +116,7 @@ def measure_scene(
                     if round_:
                         best[key] = min(best[key], seconds)
             os.environ.pop("JAXRT_CPU_THREADS", None)
-            row = {"scene": name, "quality": quality, "rays": kind, "query": "any" if any_hit else "closest"}
+            row = {"scene": name, "quality": quality, "rays": kind, "query": query}
             row.update({key: n_rays / s / 1e6 for key, s in best.items()})
             rows.append(row)
     return rows
@@ -99,6 +127,12 @@ def _format(row: dict[str, Any], threads: Sequence[int]) -> str:
     for count in threads:
         parts.append(
             f"kernel {count}t {row[f'kernel {count}t']:5.2f}  intersect {count}t {row[f'intersect {count}t']:5.2f}"
+        )
+    if "portable 1t" in row:
+        parts.append(f"portable 1t {row['portable 1t']:5.2f}")
+        parts.append(
+            "per core / portable "
+            + " ".join(f"{count}t {row[f'intersect {count}t'] / count / row['portable 1t']:.1f}" for count in threads)
         )
     if "embree 1t" in row:
         parts.append(f"embree 1t {row['embree 1t']:5.2f}")
@@ -117,6 +151,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=5, help="alternating rounds; the best is kept (default 5)")
     parser.add_argument("--threads", type=int, nargs="+", help="jaxrt thread counts (default: 1 and every core)")
     parser.add_argument("--quality", nargs="+", default=["fast"], choices=["fast", "high"], help="build quality")
+    parser.add_argument(
+        "--queries", nargs="+", default=["closest", "any"], choices=list(QUERIES), help="queries (default closest any)"
+    )
     parser.add_argument("--data-dir", help="shared mesh folder (default: $JAXRT_DATA_DIR or ../shared/data)")
     parser.add_argument("--json", metavar="PATH", help="also write the rows and the machine info to PATH")
     args = parser.parse_args(argv)
@@ -130,7 +167,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     rows = []
     for name in args.scenes:
         for quality in args.quality:
-            for row in measure_scene(name, args.rays, args.repeats, threads, args.data_dir, quality):
+            for row in measure_scene(name, args.rays, args.repeats, threads, args.data_dir, quality, args.queries):
                 print(_format(row, threads), flush=True)
                 rows.append(row)
     print(f"load average at the end {os.getloadavg()}")

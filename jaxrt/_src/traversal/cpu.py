@@ -10,8 +10,10 @@ leaf, distance, instance chain and stats counters, decided with the same float o
 The intersector picks this path (``backend="auto"`` or ``"cpu"``) when :func:`unavailable_reason` returns
 ``None`` (the default JAX backend is the CPU and Numba imports) and
 :func:`jaxrt._src.pipeline.kernel_declines` finds the scene and intersector covered: triangles, flat or
-instanced at any depth, nearest and any hit, cull modes and windings, ray intervals, ray and instance masks,
-disabled rays and the stats counters, in float32 or float64.
+instanced at any depth, bounding boxes with the built-in sphere, disk and capped cylinder functions (their
+distances equal the portable path's to rounding: XLA contracts some of their multiply-adds, the loop none),
+nearest and any hit, the ``K`` nearest hits (``max_hits``) and counting, cull modes and windings, ray
+intervals, ray and instance masks, disabled rays and the stats counters, in float32 or float64.
 
 Composition:
   - ``jax.jit``: the traversal is one host callback; Numba compiles once per dtype (not per shape), and
@@ -36,15 +38,19 @@ from jax import lax
 
 from jaxrt._src import numerics
 from jaxrt._src.primitives import box
+from jaxrt._src.traversal import packed
 from jaxrt._src.traversal.scene import TraversalLayout, TraversalResult, TraversalScene
+from jaxrt._src.traversal.step import HitList
 
 __all__ = ["constants", "host_scene", "kernel_arguments", "trace_scene", "unavailable_reason"]
 
 #: Base ranks of the callback's arguments (scene arrays, then rays); leading axes beyond them are vmap axes.
-_SCENE_RANKS = (3, 3, 2, 3, 3, 1, 1, 1)
+_SCENE_RANKS = (3, 3, 2, 3, 3, 1, 1, 1, 2)
 _RAY_RANKS = (2, 2, 1, 1, 1, 1)
-#: Positions of the float arguments (scene geometry and rays).
-_FLOAT_ARGS = (0, 1, 3, 4, 8, 9, 10, 11)
+#: Position of the first ray argument.
+_RAYS = len(_SCENE_RANKS)
+#: Positions of the float arguments (scene geometry, analytic rows and rays).
+_FLOAT_ARGS = (0, 1, 3, 4, 8, 9, 10, 11, 12)
 #: Rays a thread claims at a time (rays cost unevenly: small claims keep every thread busy to the end).
 CHUNK = 32
 #: Fewest rays per thread worth starting one.
@@ -107,12 +113,14 @@ def constants(dtype: Any) -> np.ndarray:
 
 
 def _run(params: tuple, arrays: list[np.ndarray]) -> tuple[np.ndarray, ...]:
-    """Trace one scene's rays (flat ``(n, ...)`` arrays) with the compiled kernel."""
+    """Trace one scene's rays (flat ``(n, ...)`` arrays) with the compiled kernel; with a hit list
+    (``params[6]``) the hit distances, leaves, totals and chains follow the six outputs."""
     from jaxrt._src.traversal import cpu_kernel
 
     arrays = [np.ascontiguousarray(a) for a in arrays]
-    origin = arrays[8]
+    origin = arrays[_RAYS]
     n, levels = origin.shape[0], params[2]
+    hit_list, k = bool(params[6]), params[7]
     dtype = origin.dtype
     out = (
         np.empty(n, dtype),
@@ -122,9 +130,16 @@ def _run(params: tuple, arrays: list[np.ndarray]) -> tuple[np.ndarray, ...]:
         np.empty(n, np.int32),
         np.empty(n, np.bool_),
     )
+    rows = n if hit_list else 0  # without a hit list the kernel writes none of these
+    hits = (
+        np.empty((rows, k), dtype),
+        np.empty((rows, k), np.int32),
+        np.empty(rows, np.int32),
+        np.empty((rows, k, levels), np.int32),
+    )
     consts, flags = constants(dtype), np.asarray(params, np.int64)
     counter = np.zeros(1, np.int64)
-    run = functools.partial(cpu_kernel.trace_rays, *arrays, consts, flags, counter, CHUNK, n, *out)
+    run = functools.partial(cpu_kernel.trace_rays, *arrays, consts, flags, counter, CHUNK, n, *out, *hits)
     workers = min(threads(), -(-n // MIN_TASK))
     # The kernel releases the GIL; each thread claims chunks of rays from the shared counter until none is
     # left, so uneven rays balance without a task per chunk. This thread is one of the workers.
@@ -132,7 +147,7 @@ def _run(params: tuple, arrays: list[np.ndarray]) -> tuple[np.ndarray, ...]:
     run()
     for helper in helpers:
         helper.result()
-    return out
+    return out + hits if hit_list else out
 
 
 def _host(params: tuple, wide: bool, hosted: tuple | None, *args: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -157,10 +172,10 @@ def _host(params: tuple, wide: bool, hosted: tuple | None, *args: np.ndarray) ->
             for i, a in enumerate(args)
         )
     out = _host_arrays(params, *args)
-    distance = out[0]
-    if wide:
-        distance = distance.view(np.uint32).reshape(*distance.shape, 2)
-    return (distance, *out[1:])
+    if wide:  # the float outputs (distances, and the hit distances of a hit list) as pairs of words
+        words = lambda a: a.view(np.uint32).reshape(*a.shape, 2)  # noqa: E731
+        out = tuple(words(a) if i in (0, 6) else a for i, a in enumerate(out))
+    return out
 
 
 def _at(address: int, shape: tuple[int, ...], dtype: str) -> np.ndarray:
@@ -228,10 +243,12 @@ def _host_arrays(params: tuple, *args: np.ndarray) -> tuple[np.ndarray, ...]:
     batch = np.broadcast_shapes(*lead)
     if not batch:
         return _run(params, args)
-    scenes = int(np.prod(np.broadcast_shapes(*lead[:8]), dtype=np.int64))
+    scenes = int(np.prod(np.broadcast_shapes(*lead[:_RAYS]), dtype=np.int64))
     if scenes == 1:  # rays batched over one scene: one parallel call over all of them
-        scene = [a.reshape(a.shape[a.ndim - r :]) for a, r in zip(args[:8], _SCENE_RANKS, strict=True)]
-        rays = [np.broadcast_to(a, batch + a.shape[a.ndim - r :]) for a, r in zip(args[8:], _RAY_RANKS, strict=True)]
+        scene = [a.reshape(a.shape[a.ndim - r :]) for a, r in zip(args[:_RAYS], _SCENE_RANKS, strict=True)]
+        rays = [
+            np.broadcast_to(a, batch + a.shape[a.ndim - r :]) for a, r in zip(args[_RAYS:], _RAY_RANKS, strict=True)
+        ]
         n = rays[0].shape[-2]
         out = _run(params, scene + [a.reshape(-1, *a.shape[len(batch) + 1 :]) for a in rays])
         return tuple(a.reshape(*batch, n, *a.shape[1:]) for a in out)
@@ -240,13 +257,30 @@ def _host_arrays(params: tuple, *args: np.ndarray) -> tuple[np.ndarray, ...]:
     return tuple(np.stack(parts).reshape(*batch, *parts[0].shape) for parts in zip(*results, strict=True))
 
 
-def _params(layout: TraversalLayout, any_hit: bool, cull: int) -> tuple[int, ...]:
-    """The kernel's integer parameters (static)."""
-    return (int(layout.root), int(layout.primitive_leaves), int(layout.levels), int(layout.stack_size), int(bool(any_hit)), int(cull))  # fmt: skip
+def _params(
+    layout: TraversalLayout,
+    any_hit: bool,
+    cull: int,
+    max_hits: int | None = None,
+    count_all: bool = False,
+    analytic: bool = False,
+) -> tuple[int, ...]:
+    """The kernel's integer parameters (static); a hit list where ``max_hits`` is given or ``count_all``;
+    ``analytic``: the scene has analytic leaves."""
+    hit_list = max_hits is not None or count_all
+    if hit_list and (any_hit or (count_all and max_hits) or (not count_all and (max_hits or 0) < 1)):
+        raise ValueError(
+            "traversal.cpu: hit lists need max_hits >= 1 (0 or None with count_all) and no any_hit "
+            f"(got max_hits={max_hits}, count_all={count_all}, any_hit={any_hit})"
+        )
+    return (int(layout.root), int(layout.primitive_leaves), int(layout.levels), int(layout.stack_size), int(bool(any_hit)), int(cull), int(hit_list), int(max_hits or 0), int(bool(count_all)), int(bool(analytic)))  # fmt: skip
 
 
-def _arguments(scene: TraversalScene, origin, direction, t_min, t_max, enabled, mask, floats) -> tuple:
-    """The callback's arguments in the kernel's order; ``floats`` converts the float ones."""
+def _arguments(scene: TraversalScene, origin, direction, t_min, t_max, enabled, mask, floats, rows=None) -> tuple:
+    """The callback's arguments in the kernel's order; ``floats`` converts the float ones; ``rows``: the
+    analytic leaves' rows (``None``: a placeholder row)."""
+    if rows is None:
+        rows = jnp.zeros((1, packed.TRIANGLE_WIDTH), scene.node_lower.dtype)
     return (
         floats(scene.node_lower),
         floats(scene.node_upper),
@@ -256,6 +290,7 @@ def _arguments(scene: TraversalScene, origin, direction, t_min, t_max, enabled, 
         scene.instance_child_root.astype(jnp.int32),
         scene.instance_facing.astype(jnp.int32),
         scene.instance_mask.astype(jnp.uint32),
+        floats(rows.astype(scene.node_lower.dtype)),
         *(floats(a) for a in (origin, direction, t_min, t_max)),
         enabled.astype(bool),
         mask.astype(jnp.uint32),
@@ -267,12 +302,23 @@ def kernel_arguments(structure: Any, rays: Any, intersector: Any) -> tuple[tuple
     intersector's callback would for ``rays`` (a :class:`jaxrt.Ray` of shape ``(N,)``): for benchmarks."""
     from jaxrt._src.pipeline import SanitizedRays
     from jaxrt._src.scene_view import scene_view
+    from jaxrt._src.traversal import gpu
 
     view = scene_view(structure)
     ray = SanitizedRays(rays)
-    params = _params(view.layout, intersector.accept_any_intersection, intersector.cull)
+    dtype = view.traversal.node_lower.dtype
+    analytic = gpu.analytic_leaves(intersector.intersection_functions, view, dtype)
+    params = _params(
+        view.layout,
+        intersector.accept_any_intersection,
+        intersector.cull,
+        0 if intersector.counts_all else intersector.max_hits,
+        intersector.counts_all,
+        analytic is not None,
+    )
+    rows = None if analytic is None else analytic.rows
     args = _arguments(
-        view.traversal, ray.origin, ray.direction, ray.t_min, ray.t_max, ray.enabled, ray.mask, lambda a: a
+        view.traversal, ray.origin, ray.direction, ray.t_min, ray.t_max, ray.enabled, ray.mask, lambda a: a, rows
     )
     return params, [np.ascontiguousarray(a) for a in args]
 
@@ -289,6 +335,9 @@ def trace_scene(
     *,
     any_hit: bool,
     cull: int,
+    max_hits: int | None = None,
+    count_all: bool = False,
+    analytic: Any = None,
     host: Any = None,
 ) -> TraversalResult:
     """Trace rays through a scene of any instance depth with the compiled CPU traversal.
@@ -304,22 +353,32 @@ def trace_scene(
       any_hit: stop at the first accepted hit.
       cull: 0 culls nothing, +1 clockwise triangles, -1 counterclockwise ones; below instances the sense is
         multiplied by the chain's ``instance_facing``.
+      max_hits: static ``K``: also keep the ``K`` nearest hits of each ray in ``hits`` (a
+        :class:`~jaxrt._src.traversal.step.HitList`, as the portable traversal's ``max_hits``, with each hit's
+        instance chain below instances; not with ``any_hit``). ``0`` with ``count_all``.
+      count_all: static; count every accepted hit in ``hits.total`` (no culling), at any instance depth.
+      analytic: the parameter rows of the scene's analytic leaves in the scene's dtype
+        (:func:`jaxrt._src.traversal.gpu.analytic_leaves`): bounding-box leaves tested as the built-in
+        intersection functions test them.
       host: ``None``, or the addresses of ``scene``'s node and triangle arrays and maybe of the rays
         (:func:`host_scene`): the arrays of a primitive structure and rays passed to the running program,
         read in place (a disabled ray's own values are read, and skipped).
 
     Returns:
-      The portable traversal's :class:`~jaxrt._src.traversal.scene.TraversalResult`.
+      The portable traversal's :class:`~jaxrt._src.traversal.scene.TraversalResult`; with ``max_hits`` or
+      ``count_all`` its ``hits`` too (then ``leaf`` is the first hit and ``distance`` the culling bound).
     """
     dtype = scene.node_lower.dtype
     if origin.dtype != dtype:
         raise ValueError(f"traversal.cpu.trace_scene: rays are {origin.dtype} but the scene is {dtype}")
     levels = int(layout.levels)
-    params = _params(layout, any_hit, cull)
+    params = _params(layout, any_hit, cull, max_hits, count_all, analytic is not None)
+    hit_list, k = bool(params[6]), params[7]
     detached = lax.stop_gradient
     wide = jnp.dtype(dtype).itemsize == 8
     words = lambda a: lax.bitcast_convert_type(detached(a).astype(dtype), jnp.uint32) if wide else detached(a)  # noqa: E731
-    args = _arguments(scene, origin, direction, t_min, t_max, enabled, mask, words)
+    rows = None if analytic is None else analytic.rows
+    args = _arguments(scene, origin, direction, t_min, t_max, enabled, mask, words, rows)
     n = origin.shape[0]
     shapes = (
         jax.ShapeDtypeStruct((n, 2), jnp.uint32) if wide else jax.ShapeDtypeStruct((n,), dtype),
@@ -329,9 +388,16 @@ def trace_scene(
         jax.ShapeDtypeStruct((n,), jnp.int32),
         jax.ShapeDtypeStruct((n,), jnp.bool_),
     )
+    if hit_list:
+        shapes += (
+            jax.ShapeDtypeStruct((n, k, 2), jnp.uint32) if wide else jax.ShapeDtypeStruct((n, k), dtype),
+            jax.ShapeDtypeStruct((n, k), jnp.int32),
+            jax.ShapeDtypeStruct((n,), jnp.int32),
+            jax.ShapeDtypeStruct((n, k, levels), jnp.int32),
+        )
     hosted = None
     if host is not None:  # arrays read in place (see host_scene): the scene's, and maybe the rays'
-        in_place = (0, 1, 2, 3) if host.shape[0] == 4 else (0, 1, 2, 3, 8, 9, 10, 11)
+        in_place = (0, 1, 2, 3) if host.shape[0] == 4 else (0, 1, 2, 3, 9, 10, 11, 12)
         sources = (scene.node_lower, scene.node_upper, scene.node_children, scene.leaf_triangle, origin, direction, t_min, t_max)  # fmt: skip
         hosted = tuple(
             (i, tuple(a.shape), jnp.dtype(a.dtype).name)
@@ -345,5 +411,9 @@ def trace_scene(
         args = (jnp.asarray(host, jnp.uint32), anchors, *(a for i, a in enumerate(args) if i not in in_place))
     callback = functools.partial(_host, params, wide, hosted)
     out = jax.pure_callback(callback, shapes, *args, vmap_method="expand_dims")
-    distance = lax.bitcast_convert_type(out[0], dtype) if wide else out[0]
-    return TraversalResult(distance, *out[1:])
+    floats = lambda a: lax.bitcast_convert_type(a, dtype) if wide else a  # noqa: E731
+    hits = None
+    if hit_list:
+        distances, leaves, total, chains = out[6:]
+        hits = HitList(floats(distances), leaves, total, chains if levels else None)
+    return TraversalResult(floats(out[0]), *out[1:6], hits)

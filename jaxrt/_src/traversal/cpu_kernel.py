@@ -194,20 +194,145 @@ def _row(m0, m1, m2, x0, x1, x2):
     return _fma(m2, x2, _fma(m1, x1, m0 * x0))
 
 
+@numba.njit(cache=True)
+def _dot(ax, ay, az, bx, by, bz):
+    """``jnp.dot`` of two 3-vectors as the GPU kernel computes it: ``(ax bx + ay by) + az bz``, unfused."""
+    return (ax * bx + ay * by) + az * bz
+
+
+@numba.njit(cache=True)
+def _take(best_ok, best_t, ok, t, t_min, t_max):
+    """One candidate of the portable ``_nearest``: kept where valid, inside the interval and strictly nearer."""
+    ok = ok and t >= t_min and t <= t_max
+    if ok and t < best_t:
+        best_t = t
+    return best_ok or ok, best_t
+
+
+@numba.njit(cache=True)
+def _sphere(px, py, pz, radius, ox, oy, oz, dx, dy, dz, t_min, t_max, one, inf):
+    """:func:`jaxrt._src.primitives.analytic.sphere` (the GPU kernel's ``_sphere``)."""
+    fx, fy, fz = ox - px, oy - py, oz - pz
+    a = _dot(dx, dy, dz, dx, dy, dz)
+    b = -_dot(fx, fy, fz, dx, dy, dz)
+    s = b / a
+    gx, gy, gz = fx + s * dx, fy + s * dy, fz + s * dz
+    rr = radius * radius
+    disc = a * (rr - _dot(gx, gy, gz, gx, gy, gz))
+    ok = disc >= 0
+    q = b + (one if b >= 0 else -one) * np.sqrt(disc if ok else one)
+    c = _dot(fx, fy, fz, fx, fy, fz) - rr
+    q_ok = ok and q != 0
+    t0 = c / (q if q_ok else one)
+    t1 = q / a
+    best_ok, best_t = _take(False, inf, q_ok, t0, t_min, t_max)
+    return _take(best_ok, best_t, ok, t1, t_min, t_max)
+
+
+@numba.njit(cache=True)
+def _disk(px, py, pz, nx, ny, nz, radius, ox, oy, oz, dx, dy, dz, t_min, t_max, one, inf):
+    """:func:`jaxrt._src.primitives.analytic.disk` (both faces)."""
+    denom = _dot(dx, dy, dz, nx, ny, nz)
+    ok = denom != 0
+    t = _dot(px - ox, py - oy, pz - oz, nx, ny, nz) / (denom if ok else one)
+    ux, uy, uz = (ox + t * dx) - px, (oy + t * dy) - py, (oz + t * dz) - pz
+    inside = _dot(ux, uy, uz, ux, uy, uz) <= radius * radius
+    return _take(False, inf, ok and inside, t, t_min, t_max)
+
+
+@numba.njit(cache=True)
+def _capped_cylinder(px, py, pz, qx, qy, qz, radius, ox, oy, oz, dx, dy, dz, t_min, t_max, one, inf):
+    """:func:`jaxrt._src.primitives.analytic.capped_cylinder`: the side wall's two roots, then the caps at ``p0``
+    and ``p1`` (its order of candidates)."""
+    ax, ay, az = qx - px, qy - py, qz - pz
+    length2 = _dot(ax, ay, az, ax, ay, az)
+    cx, cy, cz = ox - px, oy - py, oz - pz
+    d_along = _dot(dx, dy, dz, ax, ay, az)
+    oc_along = _dot(cx, cy, cz, ax, ay, az)
+    vx, vy, vz = dx * length2 - ax * d_along, dy * length2 - ay * d_along, dz * length2 - az * d_along
+    ux, uy, uz = cx * length2 - ax * oc_along, cy * length2 - ay * oc_along, cz * length2 - az * oc_along
+    a = _dot(vx, vy, vz, vx, vy, vz)
+    b = _dot(ux, uy, uz, vx, vy, vz)
+    limit = ((radius * radius) * length2) * length2
+    c = _dot(ux, uy, uz, ux, uy, uz) - limit
+    disc = b * b - a * c
+    wall_ok = a > 0 and disc >= 0
+    root = np.sqrt(disc if wall_ok else one)
+    a_safe = a if wall_ok else one
+    best_ok, best_t = False, inf
+    for sign in (-one, one):
+        t = (-b + sign * root) / a_safe
+        along = oc_along + t * d_along
+        best_ok, best_t = _take(best_ok, best_t, wall_ok and along >= 0 and along <= length2, t, t_min, t_max)
+    cap_ok = d_along != 0
+    d_safe = d_along if cap_ok else one
+    for start in ((one - one) * length2 - oc_along, length2 - oc_along):  # the portable ``target * length2 - oc_along``
+        t = start / d_safe
+        rx, ry, rz = ux + t * vx, uy + t * vy, uz + t * vz
+        best_ok, best_t = _take(best_ok, best_t, cap_ok and _dot(rx, ry, rz, rx, ry, rz) <= limit, t, t_min, t_max)
+    return best_ok, best_t
+
+
+@numba.njit(cache=True)
+def _analytic(row, ox, oy, oz, dx, dy, dz, t_min, t_max, one, inf):
+    """``(accepted, distance)`` of an analytic leaf's row (:func:`jaxrt._src.traversal.packed.pack_analytic`:
+    ``p``, code, ``q``, radius) for the ray of its level."""
+    code = row[3]
+    if code == 1:
+        ok, t = _sphere(row[0], row[1], row[2], row[7], ox, oy, oz, dx, dy, dz, t_min, t_max, one, inf)
+    elif code == 2:
+        ok, t = _disk(row[0], row[1], row[2], row[4], row[5], row[6], row[7], ox, oy, oz, dx, dy, dz, t_min, t_max, one, inf)  # fmt: skip
+    else:
+        ok, t = _capped_cylinder(row[0], row[1], row[2], row[4], row[5], row[6], row[7], ox, oy, oz, dx, dy, dz, t_min, t_max, one, inf)  # fmt: skip
+    return ok, (t if ok else inf)
+
+
+@numba.njit(cache=True)
+def _insert(hit_distance, hit_leaf, hit_chains, k, t, leaf, chain, level, levels):
+    """Insert a hit at distance ``t`` into the sorted list of ``k`` hits after those at the same distance (the
+    portable ``_insert``), with the path ``chain[:level]``; returns 1 (the hit is counted even when it falls
+    past the list's end)."""
+    position = 0
+    for h in range(k):
+        if hit_distance[h] <= t:
+            position += 1
+    if position < k:
+        for h in range(k - 1, position, -1):
+            hit_distance[h] = hit_distance[h - 1]
+            hit_leaf[h] = hit_leaf[h - 1]
+            for j in range(levels):
+                hit_chains[h, j] = hit_chains[h - 1, j]
+        hit_distance[position] = t
+        hit_leaf[position] = leaf
+        for j in range(levels):
+            hit_chains[position, j] = chain[j] if j < level else -1
+    return 1
+
+
 @numba.njit(nogil=True, cache=True)
 def trace_rays(
     node_lower, node_upper, node_children, leaf_triangle, world_to_object, child_root, instance_facing,
-    instance_mask, origin, direction, t_min_all, t_max_all, enabled, mask_all, consts, params, counter, chunk, end, out_distance,
-    out_leaf, out_chain, out_visited, out_tested, out_overflow,
+    instance_mask, analytic_rows, origin, direction, t_min_all, t_max_all, enabled, mask_all, consts, params, counter, chunk, end, out_distance,
+    out_leaf, out_chain, out_visited, out_tested, out_overflow, out_hit_distance, out_hit_leaf, out_hit_total,
+    out_hit_chain,
 ):  # fmt: skip
     """Trace rays ``0`` to ``end``; results go to the ``out_*`` arrays. Runs without the GIL: every thread that
     calls it with the same ``counter`` (``int64[1]``, starting at 0) claims the next ``chunk`` rays until all are
     claimed.
 
-    ``params`` holds ``root, primitive_leaves, levels, stack_size, any_hit, cull``; ``consts`` the float
-    constants in the geometry's dtype (:func:`jaxrt._src.traversal.cpu.constants`).
+    ``params`` holds ``root, primitive_leaves, levels, stack_size, any_hit, cull, hit_list, max_hits,
+    count_all, analytic`` (``analytic``: leaves whose row in ``analytic_rows`` has a shape code are tested as
+    that shape, the others as triangles); ``consts`` the float constants in the geometry's dtype
+    (:func:`jaxrt._src.traversal.cpu.constants`). With ``hit_list`` the ``K = max_hits`` nearest hits go to
+    ``out_hit_*`` (``(end, K)``, ``(end, K)``, ``(end,)``, ``(end, K, levels)``) as the portable
+    :class:`~jaxrt._src.traversal.step.HitList` keeps them; ``out_distance`` is then the culling distance and
+    ``out_leaf`` the first hit.
     """
     root, primitive_leaves, levels, stack_size, any_hit, cull = params[0], params[1], params[2], params[3], params[4] != 0, params[5]  # fmt: skip
+    hit_list, k, count_all, analytic = params[6] != 0, params[7], params[8] != 0, params[9] != 0
+    hit_distance = np.empty(max(k, 1), consts.dtype)
+    hit_leaf = np.empty(max(k, 1), np.int32)
+    hit_chains = np.empty((max(k, 1), max(levels, 1)), np.int32)
     stack = np.empty(max(stack_size, 1), np.int32)
     base = np.zeros(max(levels, 1), np.int32)
     chain = np.full(max(levels, 1), -1, np.int32)
@@ -232,13 +357,21 @@ def trace_rays(
                 out_visited[i] = 0
                 out_tested[i] = 0
                 out_overflow[i] = False
+                if hit_list:
+                    for h in range(k):
+                        out_hit_distance[i, h] = inf
+                        out_hit_leaf[i, h] = -1
+                        for j in range(levels):
+                            out_hit_chain[i, h, j] = -1
+                    out_hit_total[i] = 0
                 continue
             t_min = t_min_all[i]
             distance = t_max_all[i]
             ray_mask = mask_all[i]
             leaf = -1
             o0, o1, o2 = origin[i, 0], origin[i, 1], origin[i, 2]
-            i0, i1, i2, kx, ky, kz, sx, sy, sz = _load(o0, o1, o2, direction[i, 0], direction[i, 1], direction[i, 2], one, clamp, huge, clamped_huge)  # fmt: skip
+            w0, w1, w2 = direction[i, 0], direction[i, 1], direction[i, 2]  # the loaded direction
+            i0, i1, i2, kx, ky, kz, sx, sy, sz = _load(o0, o1, o2, w0, w1, w2, one, clamp, huge, clamped_huge)
             facing = 1
             node = root
             depth = 0
@@ -249,6 +382,13 @@ def trace_rays(
             overflow = False
             for j in range(levels):
                 hit_chain[j] = -1
+            total = 0
+            if hit_list:
+                for h in range(k):
+                    hit_distance[h] = inf
+                    hit_leaf[h] = -1
+                    for j in range(levels):
+                        hit_chains[h, j] = -1
             while True:
                 visited += 1
                 un = np.uint64(node)
@@ -273,9 +413,12 @@ def trace_rays(
                     if k0 < primitive_leaves:
                         if hit0:
                             tested += 1
-                            q = np.uint64(k0) * _U9
-                            v = (tf[q], tf[q + _U1], tf[q + _U2], tf[q + _U3], tf[q + _U4], tf[q + _U5], tf[q + _U6], tf[q + _U7], tf[q + _U8])  # fmt: skip
-                            ok0, t0 = _triangle(v, o0, o1, o2, kx, ky, kz, sx, sy, sz, t_min, distance, sense, inf)  # fmt: skip
+                            if analytic and analytic_rows[k0, 3] != 0:
+                                ok0, t0 = _analytic(analytic_rows[k0], o0, o1, o2, w0, w1, w2, t_min, distance, one, inf)  # fmt: skip
+                            else:
+                                q = np.uint64(k0) * _U9
+                                v = (tf[q], tf[q + _U1], tf[q + _U2], tf[q + _U3], tf[q + _U4], tf[q + _U5], tf[q + _U6], tf[q + _U7], tf[q + _U8])  # fmt: skip
+                                ok0, t0 = _triangle(v, o0, o1, o2, kx, ky, kz, sx, sy, sz, t_min, distance, sense, inf)  # fmt: skip
                     else:
                         g = min(max(k0 - primitive_leaves, 0), instances - 1)
                         e0 = -1 - g
@@ -284,13 +427,18 @@ def trace_rays(
                     if k1 < primitive_leaves:
                         if hit1:
                             tested += 1
-                            q = np.uint64(k1) * _U9
-                            v = (tf[q], tf[q + _U1], tf[q + _U2], tf[q + _U3], tf[q + _U4], tf[q + _U5], tf[q + _U6], tf[q + _U7], tf[q + _U8])  # fmt: skip
-                            ok1, t1 = _triangle(v, o0, o1, o2, kx, ky, kz, sx, sy, sz, t_min, distance, sense, inf)  # fmt: skip
+                            if analytic and analytic_rows[k1, 3] != 0:
+                                ok1, t1 = _analytic(analytic_rows[k1], o0, o1, o2, w0, w1, w2, t_min, distance, one, inf)  # fmt: skip
+                            else:
+                                q = np.uint64(k1) * _U9
+                                v = (tf[q], tf[q + _U1], tf[q + _U2], tf[q + _U3], tf[q + _U4], tf[q + _U5], tf[q + _U6], tf[q + _U7], tf[q + _U8])  # fmt: skip
+                                ok1, t1 = _triangle(v, o0, o1, o2, kx, ky, kz, sx, sy, sz, t_min, distance, sense, inf)  # fmt: skip
                     else:
                         g = min(max(k1 - primitive_leaves, 0), instances - 1)
                         e1 = -1 - g
                         inner1 = hit1 and (instance_mask[g] & ray_mask) != 0
+                culling = distance
+                first = leaf
                 if ok0 or ok1:
                     if t1 < t0:
                         best_t, best_leaf = t1, k1
@@ -302,6 +450,17 @@ def trace_rays(
                         leaf = best_leaf
                         for j in range(levels):
                             hit_chain[j] = chain[j] if j < level else -1
+                if hit_list:
+                    # Both leaves' hits into the sorted list (each after the hits at its distance); the culling
+                    # distance becomes the K-th hit's once more than K are known (never when counting).
+                    distance = culling
+                    if ok0:
+                        total += _insert(hit_distance, hit_leaf, hit_chains, k, t0, k0, chain, level, levels)
+                    if ok1:
+                        total += _insert(hit_distance, hit_leaf, hit_chains, k, t1, k1, chain, level, levels)
+                    if not count_all and k > 0 and total > k:
+                        distance = hit_distance[k - 1]
+                    leaf = hit_leaf[0] if k > 0 else first
                 finished = False
                 if inner0 and inner1:
                     if near0 <= near1:
@@ -363,11 +522,19 @@ def trace_rays(
                         level += 1
                     ray_level = level
                     o0, o1, o2 = b0, b1, b2
+                    w0, w1, w2 = d0, d1, d2
                     i0, i1, i2, kx, ky, kz, sx, sy, sz = _load(b0, b1, b2, d0, d1, d2, one, clamp, huge, clamped_huge)
             out_distance[i] = distance
             out_leaf[i] = leaf
             for j in range(levels):
                 out_chain[i, j] = hit_chain[j]
+            if hit_list:
+                for h in range(k):
+                    out_hit_distance[i, h] = hit_distance[h]
+                    out_hit_leaf[i, h] = hit_leaf[h]
+                    for j in range(levels):
+                        out_hit_chain[i, h, j] = hit_chains[h, j]
+                out_hit_total[i] = total
             out_visited[i] = visited
             out_tested[i] = tested
             out_overflow[i] = overflow

@@ -528,10 +528,11 @@ class AnalyticLeaves(NamedTuple):
     shapes: int  # static: bit ``code - 1`` for each shape of the intersector's functions, bit 3 with triangles
 
 
-def analytic_leaves(functions: Any, view: Any) -> AnalyticLeaves | None:
+def analytic_leaves(functions: Any, view: Any, dtype: Any = jnp.float32) -> AnalyticLeaves | None:
     """The :class:`AnalyticLeaves` of a :class:`~jaxrt._src.scene_view.SceneView` whose bounding-box
     geometries use built-in functions (``functions``: the intersector's ``(geometry index, fn)`` pairs;
-    ``None`` without box geometry).
+    ``None`` without box geometry), in ``dtype`` (float32 for this kernel; the CPU traversal takes the
+    scene's dtype).
 
     Each box leaf's shape is the code of its geometry's function (keyed by the geometry's index within its
     structure, as the portable ``call_function``); its parameters are read as the function reads them: from
@@ -570,15 +571,15 @@ def analytic_leaves(functions: Any, view: Any) -> AnalyticLeaves | None:
                 f"traversal.gpu: primitive_data[{name!r}] has rows of shape {tuple(value.shape[1:])}; the built-in "
                 f"intersection functions read {shape}"
             )
-        return value.astype(jnp.float32)
+        return value.astype(dtype)
 
-    zero3, zero = jnp.zeros((count, 3), jnp.float32), jnp.zeros((count,), jnp.float32)
+    zero3, zero = jnp.zeros((count, 3), dtype), jnp.zeros((count,), dtype)
     first, second, radius = zero3, zero3, zero
     for shape in (1, 2, 3):
         if not shapes & (1 << (shape - 1)):
             continue
         if shape == 1 and data is None:  # the sphere inscribed in the box, as ``analytic.sphere`` takes it
-            box = lax.stop_gradient(leaves.box).astype(jnp.float32)
+            box = lax.stop_gradient(leaves.box).astype(dtype)
             p, q, r = 0.5 * (box[:, 0] + box[:, 1]), zero3, 0.5 * jnp.min(box[:, 1] - box[:, 0], axis=-1)
         elif shape == 1:
             p, q, r = field("center", (3,)), zero3, field("radius", ())
@@ -590,7 +591,7 @@ def analytic_leaves(functions: Any, view: Any) -> AnalyticLeaves | None:
         first = jnp.where(mine[:, None], p, first)
         second = jnp.where(mine[:, None], q, second)
         radius = jnp.where(mine, r, radius)
-    return AnalyticLeaves(packed.pack_analytic(code, first, second, radius), shapes)
+    return AnalyticLeaves(packed.pack_analytic(code, first, second, radius, dtype), shapes)
 
 
 def _motion_arguments(scene: TraversalScene, layout: TraversalLayout, leaves: LeafMotion | None, config: _Config):

@@ -79,7 +79,7 @@ Curves add, where the structure has curve leaves:
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -356,17 +356,20 @@ def pack_rays(
     return columns.T
 
 
-def pack_analytic(code: jax.Array, first: jax.Array, second: jax.Array, radius: jax.Array) -> jax.Array:
-    """The ``(C, 12)`` float32 analytic rows (layout in the module docstring) from each leaf's shape ``code``
-    ``(C,)`` (0: not analytic), ``first`` and ``second`` ``(C, 3)`` and ``radius`` ``(C,)``."""
+def pack_analytic(
+    code: jax.Array, first: jax.Array, second: jax.Array, radius: jax.Array, dtype: Any = jnp.float32
+) -> jax.Array:
+    """The ``(C, 12)`` analytic rows (layout in the module docstring; float32 for the GPU kernel, the scene's
+    dtype for the CPU traversal) from each leaf's shape ``code`` ``(C,)`` (0: not analytic), ``first`` and
+    ``second`` ``(C, 3)`` and ``radius`` ``(C,)``."""
     c = code.shape[0]
     return jnp.concatenate(
         [
-            first.astype(jnp.float32),
-            code.astype(jnp.float32)[:, None],
-            second.astype(jnp.float32),
-            radius.astype(jnp.float32)[:, None],
-            jnp.zeros((c, 4), jnp.float32),
+            first.astype(dtype),
+            code.astype(dtype)[:, None],
+            second.astype(dtype),
+            radius.astype(dtype)[:, None],
+            jnp.zeros((c, 4), dtype),
         ],
         axis=-1,
     )
