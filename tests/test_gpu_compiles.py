@@ -16,7 +16,7 @@ from jaxrt._src.traversal import gpu  # noqa: E402
 
 BASE = gpu._Config(False, 0, 24, 0, 8, gpu.DEFAULT_OPTIONS, False)
 
-#: ``_Config`` changes: instance levels, queries, culling, hit lists, keyframe motion and analytic leaves.
+#: ``_Config`` changes: instance levels, queries, culling, hit lists, keyframe motion, analytic and curve leaves.
 VARIANTS = {
     "static": {},
     "any hit, culling": dict(any_hit=True, cull=1),
@@ -30,6 +30,9 @@ VARIANTS = {
     "analytic spheres": dict(analytic=1),
     "analytic shapes and triangles, 1 level, any hit": dict(analytic=15, levels=1, roots=True, any_hit=True),
     "analytic disks, max_hits 4": dict(analytic=2, max_hits=4),
+    "round curves, sphere caps": dict(curves=(8, 3, 3, 1e-3, False, True, 0)),
+    "flat curves, disk and sphere caps": dict(curves=(8, 3, 3, 1e-3, True, True, 1)),
+    "round and flat curves, no Newton steps, any hit": dict(curves=(5, 0, 0, 1e-3, True, False, 2), any_hit=True),
 }
 
 

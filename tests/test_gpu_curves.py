@@ -439,4 +439,5 @@ def test_kernel_ir_without_curves_reads_no_curve_rows(monkeypatch):
     pytest.importorskip("triton")
     body = lambda text: text.split("tt.func public @trace_kernel", 1)[1].split("\n", 1)[1]  # noqa: E731
     assert "%curves_ptr" not in body(_kernel_ir(monkeypatch, ()))
-    assert "%curves_ptr" in body(_kernel_ir(monkeypatch, (8, 3, 3, 1e-3, True, True)))
+    assert "%curves_ptr" in body(_kernel_ir(monkeypatch, (8, 3, 3, 1e-3, True, True, 0)))
+    assert "%curves_ptr" in body(_kernel_ir(monkeypatch, (8, 3, 3, 1e-3, True, True, 1)))
