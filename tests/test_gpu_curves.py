@@ -328,9 +328,30 @@ def test_flat_every_basis_and_cap(basis, count, caps, kernel_here):
     t_min = np.where(rng.random(n) < 0.2, rng.uniform(4.0, 12.0, n), 0.0)
     t_max = np.where(rng.random(n) < 0.2, rng.uniform(4.0, 12.0, n), np.inf)
     ray_args = _rays(geometry, n, seed=count + 27, t_min=t_min, t_max=np.maximum(t_max, t_min), disabled=2)
-    leaf, distance = check(rt.build_primitive_structure(geometry), ray_args)
+    structure = rt.build_primitive_structure(geometry)
+    _aim_at_free_ends(structure, ray_args, 12, seed=count)
+    leaf, distance = check(structure, ray_args)
     assert (leaf[-2:] == -1).all()
     check_reference(geometry, ray_args, leaf, distance)
+
+
+def _aim_at_free_ends(structure, ray_args, k: int, seed: int) -> None:
+    """Aims the first ``k`` rays (in place) at the strands' free ends, within about a radius (the caps)."""
+    from jaxrt._src.primitives import curve
+
+    view = scene_view(structure)
+    bezier = np.asarray(curve.world_bezier(view.leaves.curve), np.float64)
+    flags = np.asarray(view.leaves.curve_flags)
+    curves = (flags & curve.IS_CURVE) != 0
+    start, end = curves & ((flags & curve.HAS_PREVIOUS) == 0), curves & ((flags & curve.HAS_NEXT) == 0)
+    ends = np.concatenate([bezier[start, 0], bezier[end, 3]])
+    rng = np.random.default_rng(seed)
+    pick = ends[rng.integers(0, len(ends), k)]
+    target = pick[:, :3] + rng.normal(scale=0.5, size=(k, 3)) * np.abs(pick[:, 3:])
+    direction = rng.normal(size=(k, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    ray_args[0][:k] = target - 6.0 * direction
+    ray_args[1][:k] = direction
 
 
 def _flat_kinked(caps: str):
