@@ -229,15 +229,20 @@ def test_options_and_hit_lists(kernel_here):
     ray_args = _rays(geometry, 32, seed=9)
     for options in (rt.CurveOptions(pieces=5, iterations=2, approach_iterations=1), rt.CurveOptions(iterations=0)):
         check(rt.build_primitive_structure(geometry), ray_args, rt.Intersector(curve_options=options))
+    _check_hit_lists("round")
+
+
+def _check_hit_lists(curve_type: str) -> None:
+    """The K nearest hits and counting every hit, kernel against portable path, through stacked strands."""
     # Stacked strands (Bezier, and linear ones) that rays from above cross one after another.
     rng = np.random.default_rng(10)
     strands = [np.stack([np.linspace(0, 3, 7), 0.1 * np.sin(np.arange(7) + j), np.full(7, j)], -1) for j in range(4)]
     indices = np.concatenate([np.array([0, 3]) + 7 * j for j in range(4)])
     radii = np.full(28, 0.2, np.float32)
     stacked = [rt.CurveGeometry(np.concatenate(strands).astype(np.float32), radii, indices, basis="bezier",
-                                control_point_count=4, end_caps="sphere")]  # fmt: skip
+                                control_point_count=4, end_caps="sphere", curve_type=curve_type)]  # fmt: skip
     stacked.append(rt.CurveGeometry(stacked[0].control_points + np.float32(0.5), radii, np.arange(27), basis="linear",
-                                    control_point_count=2))  # fmt: skip
+                                    control_point_count=2, curve_type=curve_type))  # fmt: skip
     structure = rt.build_primitive_structure(stacked)
     n = 32
     origin = np.stack([rng.uniform(0.1, 3.4, n), rng.uniform(-0.2, 0.7, n), np.full(n, 9.0)], -1).astype(np.float32)
@@ -367,7 +372,7 @@ def _flat_kinked(caps: str):
 def test_flat_joints_mixed_with_round_and_triangles(kernel_here):
     """Ribbon joints (the ray-facing disks that fill an open kink) with triangles, nearest and any hit; round and
     flat segments in one structure (each row's flag picks its test); an intersector that makes every curve flat;
-    static options (no Newton steps, pieces not a power of two)."""
+    static options (no Newton steps, pieces not a power of two); the K nearest hits and counting every hit."""
     linear, bezier = _flat_kinked("disk")
     rng = np.random.default_rng(25)
     triangles = rt.TriangleGeometry(rng.uniform(-1, 2.5, (24, 3)).astype(np.float32))
@@ -395,6 +400,7 @@ def test_flat_joints_mixed_with_round_and_triangles(kernel_here):
     ray_args = _rays(geometry, 32, seed=19)
     for options in (rt.CurveOptions(pieces=5, iterations=2), rt.CurveOptions(iterations=0)):
         check(rt.build_primitive_structure(geometry), ray_args, rt.Intersector(curve_options=options))
+    _check_hit_lists("flat")
 
 
 @kernel_test
