@@ -1,11 +1,13 @@
-"""Round curve segments in the Triton traversal kernel: the portable test of :mod:`jaxrt._src.primitives.curve`.
+"""Curve segments in the Triton traversal kernel: the portable test of :mod:`jaxrt._src.primitives.curve`.
 
 Imported only where Triton is installed (by :mod:`jaxrt._src.traversal.triton_kernel`). :func:`curve_leaf`
 tests one leaf per lane against the segment in its kernel row (:func:`jaxrt._src.traversal.packed.pack_curves`)
 with the formulas of ``curve.intersect`` for a round segment, written in the same order of operations: the
 ray-space control points, the chord pieces as exact round cones and inner spheres, the safeguarded Newton
 steps towards the closest approach, the Newton refinement of the two starts, the chord fallback, and the end
-spheres and disks with the joint rules. Each lane walks its segment's pieces in order in a loop, keeping the
+spheres and disks with the joint rules; for a flat segment (:func:`_flat_segment`, ``curve._flat``), the chord
+crossings, Newton on ``p . p' = 0`` from every candidate near the polyline, and the ray-facing end disks and
+spheres. Each lane walks its segment's pieces in order in a loop, keeping the
 first of the smallest keys of each candidate kind (the portable ``argmin`` over the pieces), so only one piece's
 values are live at a time (a ``(lanes, pieces)`` block kept every piece in registers and spilled).
 
