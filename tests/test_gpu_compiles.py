@@ -30,10 +30,11 @@ VARIANTS = {
     "analytic spheres": dict(analytic=1),
     "analytic shapes and triangles, 1 level, any hit": dict(analytic=15, levels=1, roots=True, any_hit=True),
     "analytic disks, max_hits 4": dict(analytic=2, max_hits=4),
-    "round curves, sphere caps": dict(curves=(8, 3, 2, 1e-3, False, True)),
-    "round curves, disk caps, any hit": dict(curves=(4, 2, 1, 1e-3, True, False), any_hit=True),
-    "round curves, linear, max_hits 4": dict(curves=(1, 0, 0, 1e-3, False, False), max_hits=4),
-    "round curves, counting": dict(curves=(8, 3, 2, 1e-3, True, True), count=True),
+    "round curves, sphere caps": dict(curves=(8, 3, 2, 1e-3, False, True, 0)),
+    "round curves, disk caps, any hit": dict(curves=(4, 2, 1, 1e-3, True, False, 0), any_hit=True),
+    "round curves, linear, max_hits 4": dict(curves=(1, 0, 0, 1e-3, False, False, 0), max_hits=4),
+    "flat curves, disk and sphere caps, counting": dict(curves=(8, 3, 3, 1e-3, True, True, 1), count=True),
+    "round and flat curves, no Newton steps, any hit": dict(curves=(5, 0, 0, 1e-3, True, False, 2), any_hit=True),
 }
 
 

@@ -57,29 +57,32 @@ def _infos(structure):
     return tuple(structure.geometry_info)
 
 
-def test_kernel_declines_flat_instanced_and_moving_curves():
-    """Round curves in a static primitive structure are the kernel's; flat curves, curves below instances or
-    with keyframe motion, and every curve on the CPU traversal are declined, each with its reason."""
+def test_kernel_declines_instanced_and_moving_curves():
+    """Round and flat curves in a static primitive structure are the kernel's; curves below instances or with
+    keyframe motion, and every curve on the CPU traversal are declined, each with its reason."""
     round_ = rt.build_primitive_structure(hair(seed=1, strands=2))
     flat = rt.build_primitive_structure(hair(seed=1, strands=2, curve_type="flat"))
     plain = rt.Intersector()
     assert pipeline.kernel_declines(plain, _infos(round_), "gpu") is None
-    assert pipeline.kernel_declines(plain, _infos(flat), "gpu") == "flat curves are not covered by the GPU kernel"
-    forced = rt.Intersector(curve_type="flat")
-    assert "flat curves" in pipeline.kernel_declines(forced, _infos(round_), "gpu")
+    assert pipeline.kernel_declines(plain, _infos(flat), "gpu") is None
+    assert pipeline.kernel_declines(rt.Intersector(curve_type="flat"), _infos(round_), "gpu") is None
+    assert "below instances" in pipeline.kernel_declines(plain, _infos(flat), "gpu", levels=1)
     assert "below instances" in pipeline.kernel_declines(plain, _infos(round_), "gpu", levels=1)
     assert "keyframe motion" in pipeline.kernel_declines(plain, _infos(round_), "gpu", motion=True)
     assert pipeline.kernel_declines(plain, _infos(round_), "cpu") == "curves are not covered by the CPU traversal"
+    assert pipeline.kernel_declines(plain, _infos(flat), "cpu") == "curves are not covered by the CPU traversal"
     # A curve intersector no longer rules the kernel out on its own (the scene decides).
     if jax.default_backend() != "gpu":
         assert "default JAX backend" in gpu.unavailable_reason(rt.Intersector(curve_type="round"))
 
 
 def test_forced_gpu_backend_names_the_reason():
-    structure = rt.build_primitive_structure(hair(seed=2, strands=2, curve_type="flat"))
+    strands = rt.build_primitive_structure(hair(seed=2, strands=2, curve_type="flat"))
+    structure = rt.build_instance_structure([strands], rt.Instances([0], np.eye(4, dtype=np.float32)[None, :3]))
     origin, direction = aimed_rays(np.random.default_rng(0), hair(seed=2, strands=2), 4)
-    with pytest.raises(ValueError, match="flat curves are not covered by the GPU kernel"):
-        rt.Intersector(backend="gpu").intersect(rt.Ray(jnp.asarray(origin), jnp.asarray(direction)), structure)
+    intersector = rt.Intersector(rt.tags.instancing, rt.tags.max_levels(1), backend="gpu")
+    with pytest.raises(ValueError, match="curves below instances are not covered by the GPU kernel"):
+        intersector.intersect(rt.Ray(jnp.asarray(origin), jnp.asarray(direction)), structure)
 
 
 def test_curve_rows_hold_the_packed_segments():
@@ -226,15 +229,20 @@ def test_options_and_hit_lists(kernel_here):
     ray_args = _rays(geometry, 32, seed=9)
     for options in (rt.CurveOptions(pieces=5, iterations=2, approach_iterations=1), rt.CurveOptions(iterations=0)):
         check(rt.build_primitive_structure(geometry), ray_args, rt.Intersector(curve_options=options))
+    _check_hit_lists("round")
+
+
+def _check_hit_lists(curve_type: str) -> None:
+    """The K nearest hits and counting every hit, kernel against portable path, through stacked strands."""
     # Stacked strands (Bezier, and linear ones) that rays from above cross one after another.
     rng = np.random.default_rng(10)
     strands = [np.stack([np.linspace(0, 3, 7), 0.1 * np.sin(np.arange(7) + j), np.full(7, j)], -1) for j in range(4)]
     indices = np.concatenate([np.array([0, 3]) + 7 * j for j in range(4)])
     radii = np.full(28, 0.2, np.float32)
     stacked = [rt.CurveGeometry(np.concatenate(strands).astype(np.float32), radii, indices, basis="bezier",
-                                control_point_count=4, end_caps="sphere")]  # fmt: skip
+                                control_point_count=4, end_caps="sphere", curve_type=curve_type)]  # fmt: skip
     stacked.append(rt.CurveGeometry(stacked[0].control_points + np.float32(0.5), radii, np.arange(27), basis="linear",
-                                    control_point_count=2))  # fmt: skip
+                                    control_point_count=2, curve_type=curve_type))  # fmt: skip
     structure = rt.build_primitive_structure(stacked)
     n = 32
     origin = np.stack([rng.uniform(0.1, 3.4, n), rng.uniform(-0.2, 0.7, n), np.full(n, 9.0)], -1).astype(np.float32)
@@ -311,6 +319,137 @@ def test_intersector_fields_and_gradients_from_the_kernel(kernel_here, monkeypat
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-5)
 
 
+FLAT_COMBOS = [("bezier", 4, "sphere"), ("catmull_rom", 4, "disk"), ("bspline", 3, "none"), ("linear", 2, "disk")]
+
+
+@kernel_test
+@pytest.mark.parametrize(("basis", "count", "caps"), FLAT_COMBOS)
+def test_flat_every_basis_and_cap(basis, count, caps, kernel_here):
+    """Flat (ray-facing ribbon) segments of every basis, each end cap kind, with interval limits and disabled
+    rays: the kernel against the portable path and the float64 reference."""
+    geometry = hair(seed=len(basis) + count + 1, strands=3, basis=basis, count=count, end_caps=caps, curve_type="flat")
+    rng = np.random.default_rng(count + 20)
+    n = 32
+    t_min = np.where(rng.random(n) < 0.2, rng.uniform(4.0, 12.0, n), 0.0)
+    t_max = np.where(rng.random(n) < 0.2, rng.uniform(4.0, 12.0, n), np.inf)
+    ray_args = _rays(geometry, n, seed=count + 27, t_min=t_min, t_max=np.maximum(t_max, t_min), disabled=2)
+    structure = rt.build_primitive_structure(geometry)
+    _aim_at_free_ends(structure, ray_args, 12, seed=count)
+    leaf, distance = check(structure, ray_args)
+    assert (leaf[-2:] == -1).all()
+    check_reference(geometry, ray_args, leaf, distance)
+
+
+def _aim_at_free_ends(structure, ray_args, k: int, seed: int) -> None:
+    """Aims the first ``k`` rays (in place) at the strands' free ends, within about a radius (the caps)."""
+    from jaxrt._src.primitives import curve
+
+    view = scene_view(structure)
+    bezier = np.asarray(curve.world_bezier(view.leaves.curve), np.float64)
+    flags = np.asarray(view.leaves.curve_flags)
+    curves = (flags & curve.IS_CURVE) != 0
+    start, end = curves & ((flags & curve.HAS_PREVIOUS) == 0), curves & ((flags & curve.HAS_NEXT) == 0)
+    ends = np.concatenate([bezier[start, 0], bezier[end, 3]])
+    rng = np.random.default_rng(seed)
+    pick = ends[rng.integers(0, len(ends), k)]
+    target = pick[:, :3] + rng.normal(scale=0.5, size=(k, 3)) * np.abs(pick[:, 3:])
+    direction = rng.normal(size=(k, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    ray_args[0][:k] = target - 6.0 * direction
+    ray_args[1][:k] = direction
+
+
+def _flat_kinked(caps: str):
+    """:func:`_kinked`'s strands as ribbons."""
+    return tuple(
+        rt.CurveGeometry(g.control_points, g.radii, g.indices, basis=g.basis.value, control_point_count=count,
+                         end_caps=caps, curve_type="flat")
+        for g, count in zip(_kinked(caps), (2, 4), strict=True)
+    )  # fmt: skip
+
+
+@kernel_test
+def test_flat_joints_mixed_with_round_and_triangles(kernel_here):
+    """Ribbon joints (the ray-facing disks that fill an open kink) with triangles, nearest and any hit; round and
+    flat segments in one structure (each row's flag picks its test); an intersector that makes every curve flat;
+    static options (no Newton steps, pieces not a power of two); the K nearest hits and counting every hit."""
+    linear, bezier = _flat_kinked("disk")
+    rng = np.random.default_rng(25)
+    triangles = rt.TriangleGeometry(rng.uniform(-1, 2.5, (24, 3)).astype(np.float32))
+    structure = rt.build_primitive_structure([triangles, bezier, linear])
+    n = 64
+    joints = np.array([[1, 0, 1], [1, 0, 0], [1.1, 1, 0]], np.float64)[rng.integers(0, 3, n)]
+    target = joints + rng.normal(scale=0.1, size=(n, 3))
+    direction = rng.normal(size=(n, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    origin = (target - 8.0 * direction).astype(np.float32)
+    t_max = np.where(rng.random(n) < 0.25, rng.uniform(6.0, 9.0, n), np.inf).astype(np.float32)
+    ray_args = (origin, direction.astype(np.float32), np.zeros(n, np.float32), t_max, np.ones(n, bool))
+    leaf, _ = check(structure, ray_args)
+    kinds = np.asarray(scene_view(structure).leaves.curve_flags)[np.maximum(leaf, 0)] != 0
+    assert (kinds & (leaf >= 0)).sum() > 10 and (~kinds & (leaf >= 0)).sum() > 5
+    check(structure, ray_args, any_hit=True)
+    # Round and flat in one structure, and the same strands all flat through the intersector.
+    round_linear = _kinked("sphere")[0]
+    mixed = rt.build_primitive_structure([round_linear, bezier])
+    leaf, _ = check(mixed, ray_args)
+    flags = np.asarray(scene_view(mixed).leaves.curve_flags)[np.maximum(leaf, 0)]
+    assert ((flags & 16 != 0) & (leaf >= 0)).sum() > 5 and ((flags & 16 == 0) & (leaf >= 0)).sum() > 5
+    check(mixed, ray_args, rt.Intersector(curve_type="flat"))
+    geometry = hair(seed=18, strands=3, end_caps="sphere", curve_type="flat")
+    ray_args = _rays(geometry, 32, seed=19)
+    for options in (rt.CurveOptions(pieces=5, iterations=2), rt.CurveOptions(iterations=0)):
+        check(rt.build_primitive_structure(geometry), ray_args, rt.Intersector(curve_options=options))
+    _check_hit_lists("flat")
+
+
+@kernel_test
+def test_flat_intersector_fields_and_gradients_from_the_kernel(kernel_here, monkeypatch):
+    """``Intersector(backend="gpu")`` on ribbons with triangles: the kernel's leaf, the result fields and the
+    gradients equal the portable path's; ray masks (a zero mask misses)."""
+    if not ON_GPU:
+        monkeypatch.setattr(gpu, "unavailable_reason", lambda intersector: None)
+    geometry = hair(seed=22, strands=3, end_caps="disk", curve_type="flat")
+    rng = np.random.default_rng(23)
+    triangles = rt.TriangleGeometry(rng.uniform(-2, 2, (12, 3)).astype(np.float32))
+    origin, direction = aimed_rays(rng, geometry, 32)
+    mask = np.full(32, ALL_RAYS)
+    mask[:3] = 0
+    tags = (rt.tags.curve_data, rt.tags.triangle_data)
+
+    def run(backend, points, ray_origin):
+        g = rt.CurveGeometry(points, geometry.radii, geometry.indices, basis="catmull_rom", control_point_count=4,
+                             end_caps="disk", curve_type="flat")  # fmt: skip
+        structure = rt.build_primitive_structure([triangles, g])
+        ray = rt.Ray(ray_origin, jnp.asarray(direction), mask=jnp.asarray(mask))
+        return rt.Intersector(*tags, backend=backend).intersect(ray, structure)
+
+    args = (geometry.control_points, jnp.asarray(origin))
+    got, want = run("gpu", *args), run("portable", *args)
+    if not ON_GPU:
+        assert LAUNCHES, "the kernel did not run"
+    types = np.asarray(want.type)
+    assert (types == CURVE).sum() > 10 and (types[:3] == 0).all()
+    for name in want:
+        a, b = np.asarray(got[name]), np.asarray(want[name])
+        if a.dtype.kind == "f":
+            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6, err_msg=name)
+        else:
+            np.testing.assert_array_equal(a, b, err_msg=name)
+
+    def loss(backend):
+        def f(points, ray_origin):
+            result = run(backend, points, ray_origin)
+            hit = result.type == CURVE
+            return jnp.sum(jnp.where(hit, result.distance + result.curve_parameter, 0.0))
+
+        return jax.grad(f, argnums=(0, 1))(*args)
+
+    for a, b in zip(loss("gpu"), loss("portable"), strict=True):
+        assert np.isfinite(np.asarray(a)).all() and np.abs(np.asarray(b)).max() > 0
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-5)
+
+
 def _kernel_ir(monkeypatch, curves: tuple) -> str:
     """Triton IR of ``trace_kernel`` of a primitive structure (``test_gpu_multihit._kernel_ir``), with the curve
     options ``curves`` (``()``: no curves)."""
@@ -327,4 +466,5 @@ def test_kernel_ir_without_curves_reads_no_curve_rows(monkeypatch):
     pytest.importorskip("triton")
     body = lambda text: text.split("tt.func public @trace_kernel", 1)[1].split("\n", 1)[1]  # noqa: E731
     assert "%curves_ptr" not in body(_kernel_ir(monkeypatch, ()))
-    assert "%curves_ptr" in body(_kernel_ir(monkeypatch, (8, 3, 3, 1e-3, True, True)))
+    assert "%curves_ptr" in body(_kernel_ir(monkeypatch, (8, 3, 3, 1e-3, True, True, 0)))
+    assert "%curves_ptr" in body(_kernel_ir(monkeypatch, (8, 3, 3, 1e-3, True, True, 1)))

@@ -95,23 +95,16 @@ def kernel_declines(
     The one place that decides their coverage (with :func:`jaxrt._src.traversal.gpu.unavailable_reason` and
     :func:`jaxrt._src.traversal.cpu.unavailable_reason` for the machine and the tags). Both cover the same
     cases: triangles, bounding boxes whose functions are the built-in ``rt.intersection_functions``
-    (recognised by identity) and hit lists (``max_hits`` and counting), except keyframe motion and round curves
-    in a static primitive structure, which only the GPU kernel traces (curves and boxes in one structure are
-    not combined there). Declined scenes take the portable traversal: flat curves, curves below instances or
+    (recognised by identity) and hit lists (``max_hits`` and counting), except keyframe motion and round and
+    flat curves in a static primitive structure, which only the GPU kernel traces (curves and boxes in one
+    structure are not combined there). Declined scenes take the portable traversal: curves below instances or
     with motion, user intersection functions and filters call JAX code per candidate.
     """
-    from jaxrt._src.curves import CurveType
-
     name = "CPU traversal" if backend == "cpu" else "GPU kernel"
     kinds = {g.kind for g in geometry_info}
     if "curve" in kinds:
         if backend == "cpu":
             return f"curves are not covered by the {name}"
-        curve_types = {g.curve.curve_type for g in geometry_info if g.curve is not None}
-        if intersector.curve_type is not None:
-            curve_types = {intersector.curve_type}
-        if CurveType.FLAT in curve_types:
-            return f"flat curves are not covered by the {name}"
         if levels:
             return f"curves below instances are not covered by the {name}"
         if motion or any(g.motion for g in geometry_info):
@@ -223,7 +216,7 @@ def trace(intersector: Any, view: SceneView, rays: SanitizedRays, host: Any = No
         moving = {}  # keyframe motion (GPU kernel only): each ray's time and the triangle keyframes
         if view.layout.motion:
             moving = dict(time=detached(rays.time), leaf_motion=gpu.leaf_motion(view))
-        if backend == "gpu" and "curve" in view.kinds:  # round curves: their rows and the static test options
+        if backend == "gpu" and "curve" in view.kinds:  # curves: their rows and the static test options
             moving.update(curves=gpu.curve_leaves(view, leaf_tests.curve_configuration(intersector, view)))
         if intersector.max_hits is not None or intersector.counts_all:
             moving.update(max_hits=0 if intersector.counts_all else intersector.max_hits)

@@ -9,7 +9,7 @@ The intersector picks this path (``backend="auto"`` or ``"gpu"``) when :func:`un
 ``None``: the default JAX backend is a GPU, Triton and jax-triton import (``pip install jaxrt[gpu]``), geometry
 is float32, and the intersector asks only for what the kernel covers (triangles, bounding boxes whose
 intersection functions are the built-in sphere, disk and capped cylinder (:func:`analytic_leaves`; not with
-keyframe motion), round curves of a static primitive structure (:mod:`jaxrt._src.traversal.triton_curves`;
+keyframe motion), round and flat curves of a static primitive structure (:mod:`jaxrt._src.traversal.triton_curves`;
 :func:`curve_leaves`; not in one structure with boxes), nearest and any hit, cull modes and windings, ray
 intervals, masks and disabled rays, several geometries per structure, instances over any number of levels,
 keyframe motion of triangles and instances at each ray's time, the ``K`` nearest hits of ``max_hits`` with each
@@ -148,7 +148,7 @@ class _Config:
     max_hits: int = 0  # keep this many nearest hits per ray (0: the nearest hit only)
     count: bool = False  # count every accepted hit (no hit list)
     analytic: int = 0  # analytic leaves: bits 0-2 their shapes, bit 3 triangles too (0: triangles only)
-    curves: tuple = ()  # with curve leaves: CurveLeaves.options (pieces, iterations, approach, tolerance, disk, sphere)
+    curves: tuple = ()  # with curve leaves: CurveLeaves.options (pieces, ..., disk, sphere, flat)
 
     @property
     def hit_list(self) -> bool:
@@ -260,7 +260,7 @@ def kernel_call(
         IWIDTH=4 + 12 * config.instance_keys if config.instance_keys else 0,
     )
     params.update(MAX_HITS=config.max_hits, COUNT=config.count, ANALYTIC=config.analytic)
-    pieces, iterations, approach, tolerance, disk, sphere = config.curves or (1, 0, 0, 0.0, False, False)
+    pieces, iterations, approach, tolerance, disk, sphere, flat = config.curves or (1, 0, 0, 0.0, False, False, 0)
     params.update(
         CURVES=bool(config.curves),
         PIECES=pieces,
@@ -269,6 +269,7 @@ def kernel_call(
         TOLERANCE=float(np.float32(tolerance)),
         DISK=disk,
         SPHERE=sphere,
+        FLAT=flat,
     )
     k = config.max_hits
     extra = (
@@ -475,19 +476,20 @@ class CurveLeaves(NamedTuple):
     """The curve leaves of a primitive structure as the kernel reads them (:func:`curve_leaves`)."""
 
     rows: jax.Array  # (P, 24) float32: packed.pack_curves of every primitive leaf
-    options: tuple  # static: (pieces, iterations, approach_iterations, tolerance, any disk caps, any sphere caps)
+    # static: (pieces, iterations, approach_iterations, tolerance, any disk caps, any sphere caps, flat), flat 0 for
+    # round segments only, 1 for flat ones only, 2 for both (chosen per segment by its flags)
+    options: tuple
 
 
 def curve_leaves(view: Any, config: dict) -> CurveLeaves | None:
     """The :class:`CurveLeaves` of a :class:`~jaxrt._src.scene_view.SceneView` with the static curve code choices
-    ``config`` (:func:`jaxrt._src.leaves.curve_configuration`), or ``None`` without curves. Round curves only
-    (:func:`jaxrt._src.pipeline.kernel_declines` declines flat ones)."""
+    ``config`` (:func:`jaxrt._src.leaves.curve_configuration`), or ``None`` without curves: round and flat
+    (ray-facing ribbon) curves, each with the portable ``curve.intersect`` test."""
     from jaxrt._src.primitives import curve
 
     if view.leaves.curve is None:
         return None
-    if curve.FLAT in config["curve_types"]:
-        raise ValueError("traversal.gpu: flat curves are not covered by the GPU kernel")
+    types = config["curve_types"]
     options = config["options"]
     caps = config["end_caps"]
     static = (
@@ -497,6 +499,7 @@ def curve_leaves(view: Any, config: dict) -> CurveLeaves | None:
         float(options.tolerance),
         curve.CAP_DISK in caps,
         curve.CAP_SPHERE in caps,
+        0 if curve.FLAT not in types else 2 if curve.ROUND in types else 1,
     )
     rows = packed.pack_curves(lax.stop_gradient(view.leaves.curve), view.leaves.curve_flags)
     return CurveLeaves(rows, static)

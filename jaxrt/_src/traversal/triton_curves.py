@@ -1,11 +1,13 @@
-"""Round curve segments in the Triton traversal kernel: the portable test of :mod:`jaxrt._src.primitives.curve`.
+"""Curve segments in the Triton traversal kernel: the portable test of :mod:`jaxrt._src.primitives.curve`.
 
 Imported only where Triton is installed (by :mod:`jaxrt._src.traversal.triton_kernel`). :func:`curve_leaf`
 tests one leaf per lane against the segment in its kernel row (:func:`jaxrt._src.traversal.packed.pack_curves`)
 with the formulas of ``curve.intersect`` for a round segment, written in the same order of operations: the
 ray-space control points, the chord pieces as exact round cones and inner spheres, the safeguarded Newton
 steps towards the closest approach, the Newton refinement of the two starts, the chord fallback, and the end
-spheres and disks with the joint rules. Each lane walks its segment's pieces in order in a loop, keeping the
+spheres and disks with the joint rules; for a flat segment (:func:`_flat_segment`, ``curve._flat``), the chord
+crossings, Newton on ``p . p' = 0`` from every candidate near the polyline, and the ray-facing end disks and
+spheres. Each lane walks its segment's pieces in order in a loop, keeping the
 first of the smallest keys of each candidate kind (the portable ``argmin`` over the pieces), so only one piece's
 values are live at a time (a ``(lanes, pieces)`` block kept every piece in registers and spilled).
 
@@ -267,24 +269,44 @@ def curve_leaf(
     TOLERANCE: tl.constexpr,
     DISK: tl.constexpr,
     SPHERE: tl.constexpr,
+    FLAT: tl.constexpr,
 ):
     """The leaf test's ``(hit, distance)`` with curve leaves: where ``test`` and leaf ``leaf`` is a curve (its
-    row's flags have ``IS_CURVE``), the nearest entry of the lane's ray into its round segment within
+    row's flags have ``IS_CURVE``), the nearest entry of the lane's ray into its segment within
     ``[t_min, t_max]`` (``curve.intersect``; distance ``inf`` where not hit) replaces ``(hit, distance)``, the
     triangle test's answer (a curve leaf's triangle is degenerate: never hit).
 
     ``ray`` is :func:`curve_ray`'s tuple; the options are ``curve.CurveOptions`` (``PIECES``, ``ITERATIONS``,
-    ``APPROACH`` = ``approach_iterations``, ``TOLERANCE``) and
-    ``DISK``/``SPHERE`` say whether any segment has disk or sphere end caps."""
+    ``APPROACH`` = ``approach_iterations``, ``TOLERANCE``),
+    ``DISK``/``SPHERE`` say whether any segment has disk or sphere end caps, and ``FLAT`` which segment test is
+    compiled: 0 round only, 1 flat (ray-facing ribbons) only, 2 both, chosen per row by ``FLAT_BIT``."""
     ox, oy, oz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz, scale_t = ray
     row = curves_ptr + leaf * CURVE_WIDTH
     bits = tl.load(row + 19, mask=test, other=0.0).to(tl.int32, bitcast=True)
     is_curve = test & ((bits & 32) != 0)
     if tl.max(is_curve.to(tl.int32), axis=0) > 0:
-        curve_hit, curve_distance = _round_segment(
-            row, is_curve, bits, ox, oy, oz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz, scale_t, t_min, t_max,
-            LANES, PIECES, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE,
-        )  # fmt: skip
+        if FLAT == 0:
+            curve_hit, curve_distance = _round_segment(
+                row, is_curve, bits, ox, oy, oz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz, scale_t, t_min, t_max,
+                LANES, PIECES, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE,
+            )  # fmt: skip
+        elif FLAT == 1:
+            curve_hit, curve_distance = _flat_segment(
+                row, is_curve, bits, ox, oy, oz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz, scale_t, t_min, t_max,
+                LANES, PIECES, ITERATIONS, TOLERANCE, DISK, SPHERE,
+            )  # fmt: skip
+        else:
+            flat = (bits & 16) != 0
+            curve_hit, curve_distance = _round_segment(
+                row, is_curve & (flat == 0), bits, ox, oy, oz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz, scale_t,
+                t_min, t_max, LANES, PIECES, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE,
+            )  # fmt: skip
+            flat_hit, flat_distance = _flat_segment(
+                row, is_curve & flat, bits, ox, oy, oz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz, scale_t, t_min,
+                t_max, LANES, PIECES, ITERATIONS, TOLERANCE, DISK, SPHERE,
+            )  # fmt: skip
+            curve_hit = tl.where(flat, flat_hit, curve_hit)
+            curve_distance = tl.where(flat, flat_distance, curve_distance)
         hit = tl.where(is_curve, curve_hit, hit)
         distance = tl.where(is_curve, curve_distance, distance)
     return hit, distance
@@ -550,6 +572,205 @@ def _round_segment(
             disk_ok, disk_t = _disk(x3, y3, z3, r3, dex, dey, dez, der, fx, fy, fz, -1.0)
             disk_ok = disk_ok & (has_next == 0) & (caps == 1)
             best_ok, best_t, best_u = _nearer(disk_ok, disk_t, 1.0, best_ok, best_t, best_u, lo, hi)
+        hit = live & best_ok
+        distance = tl.where(hit, best_t * scale_t, float("inf"))
+    return hit, distance
+
+
+@triton.jit
+def _ribbon_newton(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, u, near, noise, lo, hi, ITERATIONS: tl.constexpr, H: tl.constexpr, TOLERANCE: tl.constexpr):  # fmt: skip
+    """``ITERATIONS`` Newton steps on ``g(u) = p . p' = 0`` from one candidate ``u`` (kept within ``H`` of it), and
+    the ribbon's key there: its depth where converged onto the ribbon within ``[lo, hi]``, else ``inf``."""
+    window_lo = tl.maximum(u - H, 0.0)
+    window_hi = tl.minimum(u + H, 1.0)
+    for _ in range(ITERATIONS):
+        x, dx, ddx = _evaluate(cx0, cx1, cx2, cx3, u)
+        y, dy, ddy = _evaluate(cy0, cy1, cy2, cy3, u)
+        g = x * dx + y * dy
+        g_u = dx * dx + dy * dy + x * ddx + y * ddy
+        step = tl.where(g_u == 0, 0.0, _div(-g, tl.where(g_u == 0, 1.0, g_u)))
+        u = tl.minimum(tl.maximum(u + step, window_lo), window_hi)
+    x, dx, _ = _evaluate(cx0, cx1, cx2, cx3, u)
+    y, dy, _ = _evaluate(cy0, cy1, cy2, cy3, u)
+    z = _value(cz0, cz1, cz2, cz3, u)
+    r = _value(cr0, cr1, cr2, cr3, u)
+    speed = _sqrt(dx * dx + dy * dy)
+    converged = near & (tl.abs(x * dx + y * dy) <= (TOLERANCE * tl.abs(r) + noise) * speed)
+    slack = 1e-6
+    inside = (x * x + y * y <= r * r) & (u >= -slack) & (u <= 1 + slack) & (z >= lo) & (z <= hi)
+    key = tl.where(converged & inside, z, float("inf"))
+    return key, z, u
+
+
+@triton.jit
+def _flat_segment(
+    row, mask, bits, ox, oy, oz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz, scale_t, t_min, t_max,
+    LANES: tl.constexpr, PIECES: tl.constexpr, ITERATIONS: tl.constexpr,
+    TOLERANCE: tl.constexpr, DISK: tl.constexpr, SPHERE: tl.constexpr,
+):  # fmt: skip
+    """``curve._flat``: the nearest entry into the lanes' ray-facing ribbon segments (``(hit, distance)``)."""
+    H = 1.0 / PIECES
+    bx = tl.load(row + 16, mask=mask, other=0.0) - ox
+    by = tl.load(row + 17, mask=mask, other=0.0) - oy
+    bz = tl.load(row + 18, mask=mask, other=0.0) - oz
+    x0, y0, z0, r0 = _to_ray(row, 0, mask, bx, by, bz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz)
+    x1, y1, z1, r1 = _to_ray(row, 1, mask, bx, by, bz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz)
+    x2, y2, z2, r2 = _to_ray(row, 2, mask, bx, by, bz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz)
+    x3, y3, z3, r3 = _to_ray(row, 3, mask, bx, by, bz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz)
+    vx = tl.load(row + 20, mask=mask, other=0.0)
+    vy = tl.load(row + 21, mask=mask, other=0.0)
+    vz = tl.load(row + 22, mask=mask, other=0.0)
+    pvx = vx * e1x + vy * e1y + vz * e1z
+    pvy = vx * e2x + vy * e2y + vz * e2z
+    lo = _div(t_min, scale_t)
+    hi = _div(t_max, scale_t)
+    has_previous = (bits & 1) != 0
+    has_next = (bits & 2) != 0
+    caps = (bits >> 2) & 3
+    position_scale = tl.maximum(
+        tl.maximum(tl.maximum(tl.maximum(tl.abs(x0), tl.abs(y0)), tl.maximum(tl.abs(z0), tl.abs(x1))),
+                   tl.maximum(tl.maximum(tl.abs(y1), tl.abs(z1)), tl.maximum(tl.abs(x2), tl.abs(y2)))),
+        tl.maximum(tl.maximum(tl.abs(z2), tl.abs(x3)), tl.maximum(tl.abs(y3), tl.abs(z3))),
+    )  # fmt: skip
+    radius_scale = tl.maximum(tl.maximum(tl.abs(r0), tl.abs(r1)), tl.maximum(tl.abs(r2), tl.abs(r3)))
+    noise = 1.9073486328125e-06 * (position_scale + radius_scale)  # 16 eps: rounding of ray-space coordinates
+
+    # Culling as the round test's: every ribbon point is within the largest radius of the control points' hull
+    # (the cross-section's half-width is |r(u)|, and |p(u)| <= |r(u)| where the ray crosses it), at a depth
+    # inside the hull's; the end disks and spheres too.
+    reach = radius_scale * (1.0 + 2.0 * TOLERANCE) + 8.0 * noise
+    min_x = tl.minimum(tl.minimum(x0, x1), tl.minimum(x2, x3))
+    max_x = tl.maximum(tl.maximum(x0, x1), tl.maximum(x2, x3))
+    min_y = tl.minimum(tl.minimum(y0, y1), tl.minimum(y2, y3))
+    max_y = tl.maximum(tl.maximum(y0, y1), tl.maximum(y2, y3))
+    min_z = tl.minimum(tl.minimum(z0, z1), tl.minimum(z2, z3))
+    max_z = tl.maximum(tl.maximum(z0, z1), tl.maximum(z2, z3))
+    outside = (min_x > reach) | (max_x < -reach) | (min_y > reach) | (max_y < -reach)
+    outside = outside | (min_z - reach > hi) | (max_z + reach < lo)
+    live = mask & (outside == 0)
+    hit = tl.zeros((LANES,), tl.int1)
+    distance = tl.full((LANES,), float("inf"), tl.float32)
+    if tl.max(live.to(tl.int32), axis=0) > 0:
+        cx0, cx1, cx2, cx3 = _power(x0, x1, x2, x3)
+        cy0, cy1, cy2, cy3 = _power(y0, y1, y2, y3)
+        cz0, cz1, cz2, cz3 = _power(z0, z1, z2, z3)
+        cr0, cr1, cr2, cr3 = _power(r0, r1, r2, r3)
+        if ITERATIONS > 0:
+            sx = x0 - 2.0 * x1 + x2
+            sy = y0 - 2.0 * y1 + y2
+            sz = z0 - 2.0 * z1 + z2
+            tx = x1 - 2.0 * x2 + x3
+            ty = y1 - 2.0 * y2 + y3
+            tz = z1 - 2.0 * z2 + z3
+            position = tl.maximum(_sqrt(sx * sx + sy * sy + sz * sz), _sqrt(tx * tx + ty * ty + tz * tz))
+            radius = tl.maximum(tl.abs(r0 - 2.0 * r1 + r2), tl.abs(r1 - 2.0 * r2 + r3))
+            grow = _div(0.75 * (position + radius), tl.full((LANES,), PIECES * PIECES, tl.float32))
+        else:
+            grow = tl.zeros((LANES,), tl.float32)
+
+        # The candidates in the portable order (every piece, then every inner sample), each kind keeping the
+        # first of its smallest keys: chord crossings without Newton, Newton's ribbon hits with it.
+        piece_best = tl.full((LANES,), float("inf"), tl.float32)
+        piece_t = piece_best
+        piece_u = tl.zeros((LANES,), tl.float32)
+        vertex_best = piece_best
+        vertex_t = piece_best
+        vertex_u = piece_u
+        s_before = piece_u
+        ax, ay, az, ar = _sample(0, x0, x1, x2, x3, y0, y1, y2, y3, z0, z1, z2, z3, r0, r1, r2, r3, PIECES)
+        for i in range(PIECES):
+            fi = i * 1.0
+            bx, by, bz, br = _sample(i + 1, x0, x1, x2, x3, y0, y1, y2, y3, z0, z1, z2, z3, r0, r1, r2, r3, PIECES)
+            p1x = bx - ax
+            p1y = by - ay
+            length2 = p1x * p1x + p1y * p1y
+            s = tl.minimum(tl.maximum(_div(-(ax * p1x + ay * p1y), tl.where(length2 > 0, length2, 1.0)), 0.0), 1.0)
+            qx = ax + s * p1x
+            qy = ay + s * p1y
+            closest2 = qx * qx + qy * qy
+            reach = ar + s * (br - ar)
+            u_piece = (fi + s) * H
+            interior = (s > 0) & (s < 1)
+            vertex2 = ax * ax + ay * ay
+            kink = (s_before >= 1) & (s <= 0)  # at sample i (i > 0), the end of piece i - 1
+            if ITERATIONS > 0:
+                near = interior
+                if i == 0:
+                    near = near | (s <= 0)
+                if i == PIECES - 1:
+                    near = near | (s >= 1)
+                grown = reach + grow
+                near = live & near & (closest2 <= grown * grown)
+                if tl.max(near.to(tl.int32), axis=0) > 0:
+                    key, t, u = _ribbon_newton(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, u_piece, near, noise, lo, hi, ITERATIONS, H, TOLERANCE)  # fmt: skip
+                    take = key < piece_best
+                    piece_best = tl.where(take, key, piece_best)
+                    piece_t = tl.where(take, t, piece_t)
+                    piece_u = tl.where(take, u, piece_u)
+                if i > 0:
+                    vertex_grown = ar + grow
+                    near = live & kink & (vertex2 <= vertex_grown * vertex_grown)
+                    if tl.max(near.to(tl.int32), axis=0) > 0:
+                        key, t, u = _ribbon_newton(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, fi * H + tl.zeros((LANES,), tl.float32), near, noise, lo, hi, ITERATIONS, H, TOLERANCE)  # fmt: skip
+                        take = key < vertex_best
+                        vertex_best = tl.where(take, key, vertex_best)
+                        vertex_t = tl.where(take, t, vertex_t)
+                        vertex_u = tl.where(take, u, vertex_u)
+            else:
+                t_piece = az + s * (bz - az)
+                crossing = interior & (closest2 <= reach * reach)
+                key = tl.where(crossing & (t_piece >= lo) & (t_piece <= hi), t_piece, float("inf"))
+                take = key < piece_best
+                piece_best = tl.where(take, key, piece_best)
+                piece_t = tl.where(take, t_piece, piece_t)
+                piece_u = tl.where(take, u_piece, piece_u)
+                if i > 0:
+                    crossing = kink & (vertex2 <= ar * ar)
+                    key = tl.where(crossing & (az >= lo) & (az <= hi), az, float("inf"))
+                    take = key < vertex_best
+                    vertex_best = tl.where(take, key, vertex_best)
+                    vertex_t = tl.where(take, az, vertex_t)
+                    vertex_u = tl.where(take, fi * H, vertex_u)
+            s_before = s
+            ax, ay, az, ar = bx, by, bz, br
+        piece_wins = piece_best <= vertex_best  # the pieces come first in the portable candidate order
+        ribbon_ok = tl.minimum(piece_best, vertex_best) < float("inf")
+        ribbon_t = tl.where(piece_wins, piece_t, vertex_t)
+        ribbon_u = tl.where(piece_wins, piece_u, vertex_u)
+        if ITERATIONS > 0:
+            ribbon_u = tl.minimum(tl.maximum(ribbon_u, 0.0), 1.0)
+        else:
+            ribbon_ok = ribbon_ok & (ribbon_t >= lo)
+
+        # The ends: ray-facing disks (a disk cap, or the fill of a joint the neighbours leave open) and spheres.
+        dsx = 3.0 * (x1 - x0)
+        dsy = 3.0 * (y1 - y0)
+        dex = 3.0 * (x3 - x2)
+        dey = 3.0 * (y3 - y2)
+        start_in = x0 * x0 + y0 * y0 <= r0 * r0
+        end_in = x3 * x3 + y3 * y3 <= r3 * r3
+        start_free = x0 * dsx + y0 * dsy >= 0  # the ribbon's closest point lies before u = 0
+        end_free = x3 * dex + y3 * dey <= 0
+        joint_open = x0 * pvx + y0 * pvy <= 0
+        start_disk = has_previous & joint_open
+        best_ok = tl.zeros((LANES,), tl.int1)
+        best_t = tl.full((LANES,), float("inf"), tl.float32)
+        best_u = tl.zeros((LANES,), tl.float32)
+        best_ok, best_t, best_u = _nearer(ribbon_ok, ribbon_t, ribbon_u, best_ok, best_t, best_u, lo, hi)
+        if DISK:
+            start_disk = start_disk | ((has_previous == 0) & (caps == 1))
+        best_ok, best_t, best_u = _nearer(start_in & start_free & start_disk, z0, 0.0, best_ok, best_t, best_u, lo, hi)
+        if SPHERE:
+            _, start_sphere_t = _sphere_entry(x0, y0, z0, r0)
+            start_sphere = (has_previous == 0) & (caps == 2)
+            best_ok, best_t, best_u = _nearer(start_in & start_free & start_sphere, start_sphere_t, 0.0, best_ok, best_t, best_u, lo, hi)  # fmt: skip
+        if DISK:
+            end_disk = (has_next == 0) & (caps == 1)
+            best_ok, best_t, best_u = _nearer(end_in & end_free & end_disk, z3, 1.0, best_ok, best_t, best_u, lo, hi)
+        if SPHERE:
+            _, end_sphere_t = _sphere_entry(x3, y3, z3, r3)
+            end_sphere = (has_next == 0) & (caps == 2)
+            best_ok, best_t, best_u = _nearer(end_in & end_free & end_sphere, end_sphere_t, 1.0, best_ok, best_t, best_u, lo, hi)  # fmt: skip
         hit = live & best_ok
         distance = tl.where(hit, best_t * scale_t, float("inf"))
     return hit, distance

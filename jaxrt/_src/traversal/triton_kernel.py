@@ -805,6 +805,7 @@ def trace_kernel(
     TOLERANCE: tl.constexpr = 0.0,
     DISK: tl.constexpr = False,
     SPHERE: tl.constexpr = False,
+    FLAT: tl.constexpr = 0,
 ):
     """Trace ``n_rays`` rays (a multiple of ``LANES``); outputs as :class:`~jaxrt._src.traversal.scene.TraversalResult`.
 
@@ -834,9 +835,9 @@ def trace_kernel(
 
     Curves (``CURVES = False`` compiles none of this): ``curves_ptr`` holds a curve row per primitive leaf
     (:func:`jaxrt._src.traversal.packed.pack_curves`) and ray block rows 24-33 each ray's curve frame; a leaf
-    whose row is a curve takes the round segment test of :mod:`jaxrt._src.traversal.triton_curves` after the
-    triangle test, whose answer it replaces (a primitive structure only, ``LEVELS = 0``; the options
-    ``PIECES`` to ``SPHERE`` are :func:`~jaxrt._src.traversal.triton_curves.curve_leaf`'s).
+    whose row is a curve takes the round or flat segment test of :mod:`jaxrt._src.traversal.triton_curves` after
+    the triangle test, whose answer it replaces (a primitive structure only, ``LEVELS = 0``; the options
+    ``PIECES`` to ``FLAT`` are :func:`~jaxrt._src.traversal.triton_curves.curve_leaf`'s).
     """
     pid = tl.program_id(0)
     lane = tl.arange(0, LANES)
@@ -944,18 +945,18 @@ def trace_kernel(
                 if (votes & 1) != 0:
                     h0, t0 = _leaf(tris_ptr, -1 - c0, test0, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, ox, oy, oz, dx, dy, dz, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS, ANALYTIC)  # fmt: skip
                     if CURVES:
-                        h0, t0 = curve_leaf(curves_ptr, -1 - c0, test0, h0, t0, cray, t_min, distance, LANES, PIECES, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE)  # fmt: skip
+                        h0, t0 = curve_leaf(curves_ptr, -1 - c0, test0, h0, t0, cray, t_min, distance, LANES, PIECES, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE, FLAT)  # fmt: skip
                 if (votes & 2) != 0:
                     h1, t1 = _leaf(tris_ptr, -1 - c1, test1, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, ox, oy, oz, dx, dy, dz, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS, ANALYTIC)  # fmt: skip
                     if CURVES:
-                        h1, t1 = curve_leaf(curves_ptr, -1 - c1, test1, h1, t1, cray, t_min, distance, LANES, PIECES, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE)  # fmt: skip
+                        h1, t1 = curve_leaf(curves_ptr, -1 - c1, test1, h1, t1, cray, t_min, distance, LANES, PIECES, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE, FLAT)  # fmt: skip
             else:
                 h0, t0 = _leaf(tris_ptr, -1 - c0, test0, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, ox, oy, oz, dx, dy, dz, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS, ANALYTIC)  # fmt: skip
                 if CURVES:
-                    h0, t0 = curve_leaf(curves_ptr, -1 - c0, test0, h0, t0, cray, t_min, distance, LANES, PIECES, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE)  # fmt: skip
+                    h0, t0 = curve_leaf(curves_ptr, -1 - c0, test0, h0, t0, cray, t_min, distance, LANES, PIECES, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE, FLAT)  # fmt: skip
                 h1, t1 = _leaf(tris_ptr, -1 - c1, test1, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, ox, oy, oz, dx, dy, dz, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS, ANALYTIC)  # fmt: skip
                 if CURVES:
-                    h1, t1 = curve_leaf(curves_ptr, -1 - c1, test1, h1, t1, cray, t_min, distance, LANES, PIECES, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE)  # fmt: skip
+                    h1, t1 = curve_leaf(curves_ptr, -1 - c1, test1, h1, t1, cray, t_min, distance, LANES, PIECES, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE, FLAT)  # fmt: skip
             second = t1 < t0
             best_t = tl.where(second, t1, t0)
             best_leaf = tl.where(second, -1 - c1, -1 - c0)
