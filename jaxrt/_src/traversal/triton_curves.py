@@ -326,12 +326,9 @@ def _to_ray(row, k: tl.constexpr, mask, bx, by, bz, e1x, e1y, e1z, e2x, e2y, e2z
 
 
 @triton.jit
-def _round_segment(
-    row, mask, bits, ox, oy, oz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz, scale_t, t_min, t_max,
-    LANES: tl.constexpr, PIECES: tl.constexpr, ITERATIONS: tl.constexpr,
-    APPROACH: tl.constexpr, TOLERANCE: tl.constexpr, DISK: tl.constexpr, SPHERE: tl.constexpr,
-):  # fmt: skip
-    H = 1.0 / PIECES
+def _control_points(row, mask, ox, oy, oz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz):
+    """The segment's four control points and radii in ray space, about the row's base point (row entries
+    16-18): ``x0, y0, z0, r0, x1, y1, z1, r1, x2, y2, z2, r2, x3, y3, z3, r3``."""
     bx = tl.load(row + 16, mask=mask, other=0.0) - ox
     by = tl.load(row + 17, mask=mask, other=0.0) - oy
     bz = tl.load(row + 18, mask=mask, other=0.0) - oz
@@ -339,6 +336,66 @@ def _round_segment(
     x1, y1, z1, r1 = _to_ray(row, 1, mask, bx, by, bz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz)
     x2, y2, z2, r2 = _to_ray(row, 2, mask, bx, by, bz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz)
     x3, y3, z3, r3 = _to_ray(row, 3, mask, bx, by, bz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz)
+    return x0, y0, z0, r0, x1, y1, z1, r1, x2, y2, z2, r2, x3, y3, z3, r3
+
+
+@triton.jit
+def _hull_cull(x0, y0, z0, r0, x1, y1, z1, r1, x2, y2, z2, r2, x3, y3, z3, r3, mask, lo, hi, TOLERANCE: tl.constexpr):
+    """``(live, noise)``: the lanes of ``mask`` whose segment the round and the flat test can hit, and the
+    rounding noise of the ray-space coordinates (16 eps of their scale).
+
+    A lane is culled when its ray passes outside the control points' hull in ray space grown by the largest
+    radius (with the Newton tolerance and the rounding of the evaluations), or when the hull lies beyond the
+    interval. Every hit either test can accept (chord, Newton, fallback, cap, joint; a ribbon's cross-section
+    has half-width ``|r(u)|``) lies within that reach of the hull, so culled lanes are misses of the test too.
+    """
+    position_scale = tl.maximum(
+        tl.maximum(tl.maximum(tl.maximum(tl.abs(x0), tl.abs(y0)), tl.maximum(tl.abs(z0), tl.abs(x1))),
+                   tl.maximum(tl.maximum(tl.abs(y1), tl.abs(z1)), tl.maximum(tl.abs(x2), tl.abs(y2)))),
+        tl.maximum(tl.maximum(tl.abs(z2), tl.abs(x3)), tl.maximum(tl.abs(y3), tl.abs(z3))),
+    )  # fmt: skip
+    radius_scale = tl.maximum(tl.maximum(tl.abs(r0), tl.abs(r1)), tl.maximum(tl.abs(r2), tl.abs(r3)))
+    noise = 1.9073486328125e-06 * (position_scale + radius_scale)
+    reach = radius_scale * (1.0 + 2.0 * TOLERANCE) + 8.0 * noise
+    min_x = tl.minimum(tl.minimum(x0, x1), tl.minimum(x2, x3))
+    max_x = tl.maximum(tl.maximum(x0, x1), tl.maximum(x2, x3))
+    min_y = tl.minimum(tl.minimum(y0, y1), tl.minimum(y2, y3))
+    max_y = tl.maximum(tl.maximum(y0, y1), tl.maximum(y2, y3))
+    min_z = tl.minimum(tl.minimum(z0, z1), tl.minimum(z2, z3))
+    max_z = tl.maximum(tl.maximum(z0, z1), tl.maximum(z2, z3))
+    outside = (min_x > reach) | (max_x < -reach) | (min_y > reach) | (max_y < -reach)
+    outside = outside | (min_z - reach > hi) | (max_z + reach < lo)
+    live = mask & (outside == 0)
+    return live, noise
+
+
+@triton.jit
+def _chord_bound(
+    x0, y0, z0, r0, x1, y1, z1, r1, x2, y2, z2, r2, x3, y3, z3, r3, LANES: tl.constexpr, PIECES: tl.constexpr
+):
+    """``curve._chord_bound``: how far the curve (radius included) strays from its chords, ``0.75 h^2`` times
+    the largest second difference of the control points (``h = 1 / PIECES``)."""
+    sx = x0 - 2.0 * x1 + x2
+    sy = y0 - 2.0 * y1 + y2
+    sz = z0 - 2.0 * z1 + z2
+    tx = x1 - 2.0 * x2 + x3
+    ty = y1 - 2.0 * y2 + y3
+    tz = z1 - 2.0 * z2 + z3
+    position = tl.maximum(_sqrt(sx * sx + sy * sy + sz * sz), _sqrt(tx * tx + ty * ty + tz * tz))
+    radius = tl.maximum(tl.abs(r0 - 2.0 * r1 + r2), tl.abs(r1 - 2.0 * r2 + r3))
+    return _div(0.75 * (position + radius), tl.full((LANES,), PIECES * PIECES, tl.float32))
+
+
+@triton.jit
+def _round_segment(
+    row, mask, bits, ox, oy, oz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz, scale_t, t_min, t_max,
+    LANES: tl.constexpr, PIECES: tl.constexpr, ITERATIONS: tl.constexpr,
+    APPROACH: tl.constexpr, TOLERANCE: tl.constexpr, DISK: tl.constexpr, SPHERE: tl.constexpr,
+):  # fmt: skip
+    H = 1.0 / PIECES
+    x0, y0, z0, r0, x1, y1, z1, r1, x2, y2, z2, r2, x3, y3, z3, r3 = _control_points(
+        row, mask, ox, oy, oz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz
+    )
     vx = tl.load(row + 20, mask=mask, other=0.0)
     vy = tl.load(row + 21, mask=mask, other=0.0)
     vz = tl.load(row + 22, mask=mask, other=0.0)
@@ -351,28 +408,7 @@ def _round_segment(
     has_previous = (bits & 1) != 0
     has_next = (bits & 2) != 0
     caps = (bits >> 2) & 3
-    position_scale = tl.maximum(
-        tl.maximum(tl.maximum(tl.maximum(tl.abs(x0), tl.abs(y0)), tl.maximum(tl.abs(z0), tl.abs(x1))),
-                   tl.maximum(tl.maximum(tl.abs(y1), tl.abs(z1)), tl.maximum(tl.abs(x2), tl.abs(y2)))),
-        tl.maximum(tl.maximum(tl.abs(z2), tl.abs(x3)), tl.maximum(tl.abs(y3), tl.abs(z3))),
-    )  # fmt: skip
-    radius_scale = tl.maximum(tl.maximum(tl.abs(r0), tl.abs(r1)), tl.maximum(tl.abs(r2), tl.abs(r3)))
-    noise = 1.9073486328125e-06 * (position_scale + radius_scale)  # 16 eps: rounding of ray-space coordinates
-
-    # Culling, before the test: the ray passes outside the control points' hull in ray space grown by the
-    # largest radius (with the Newton tolerance and the rounding of the evaluations), or the hull lies
-    # beyond the interval. Every hit the test can accept (chord, Newton, fallback, cap) lies within that
-    # reach of the hull, so culled lanes are misses of the test too.
-    reach = radius_scale * (1.0 + 2.0 * TOLERANCE) + 8.0 * noise
-    min_x = tl.minimum(tl.minimum(x0, x1), tl.minimum(x2, x3))
-    max_x = tl.maximum(tl.maximum(x0, x1), tl.maximum(x2, x3))
-    min_y = tl.minimum(tl.minimum(y0, y1), tl.minimum(y2, y3))
-    max_y = tl.maximum(tl.maximum(y0, y1), tl.maximum(y2, y3))
-    min_z = tl.minimum(tl.minimum(z0, z1), tl.minimum(z2, z3))
-    max_z = tl.maximum(tl.maximum(z0, z1), tl.maximum(z2, z3))
-    outside = (min_x > reach) | (max_x < -reach) | (min_y > reach) | (max_y < -reach)
-    outside = outside | (min_z - reach > hi) | (max_z + reach < lo)
-    live = mask & (outside == 0)
+    live, noise = _hull_cull(x0, y0, z0, r0, x1, y1, z1, r1, x2, y2, z2, r2, x3, y3, z3, r3, mask, lo, hi, TOLERANCE)
     hit = tl.zeros((LANES,), tl.int1)
     distance = tl.full((LANES,), float("inf"), tl.float32)
     if tl.max(live.to(tl.int32), axis=0) > 0:
@@ -382,15 +418,7 @@ def _round_segment(
         cr0, cr1, cr2, cr3 = _power(r0, r1, r2, r3)
 
         if ITERATIONS > 0:
-            sx = x0 - 2.0 * x1 + x2
-            sy = y0 - 2.0 * y1 + y2
-            sz = z0 - 2.0 * z1 + z2
-            tx = x1 - 2.0 * x2 + x3
-            ty = y1 - 2.0 * y2 + y3
-            tz = z1 - 2.0 * z2 + z3
-            position = tl.maximum(_sqrt(sx * sx + sy * sy + sz * sz), _sqrt(tx * tx + ty * ty + tz * tz))
-            radius = tl.maximum(tl.abs(r0 - 2.0 * r1 + r2), tl.abs(r1 - 2.0 * r2 + r3))
-            grow = _div(0.75 * (position + radius), tl.full((LANES,), PIECES * PIECES, tl.float32))
+            grow = _chord_bound(x0, y0, z0, r0, x1, y1, z1, r1, x2, y2, z2, r2, x3, y3, z3, r3, LANES, PIECES)
             # The margin: twice the largest sample radius plus the chord bound.
             largest = tl.full((LANES,), float("-inf"), tl.float32)
             for i in range(PIECES + 1):
@@ -610,13 +638,9 @@ def _flat_segment(
 ):  # fmt: skip
     """``curve._flat``: the nearest entry into the lanes' ray-facing ribbon segments (``(hit, distance)``)."""
     H = 1.0 / PIECES
-    bx = tl.load(row + 16, mask=mask, other=0.0) - ox
-    by = tl.load(row + 17, mask=mask, other=0.0) - oy
-    bz = tl.load(row + 18, mask=mask, other=0.0) - oz
-    x0, y0, z0, r0 = _to_ray(row, 0, mask, bx, by, bz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz)
-    x1, y1, z1, r1 = _to_ray(row, 1, mask, bx, by, bz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz)
-    x2, y2, z2, r2 = _to_ray(row, 2, mask, bx, by, bz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz)
-    x3, y3, z3, r3 = _to_ray(row, 3, mask, bx, by, bz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz)
+    x0, y0, z0, r0, x1, y1, z1, r1, x2, y2, z2, r2, x3, y3, z3, r3 = _control_points(
+        row, mask, ox, oy, oz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz
+    )
     vx = tl.load(row + 20, mask=mask, other=0.0)
     vy = tl.load(row + 21, mask=mask, other=0.0)
     vz = tl.load(row + 22, mask=mask, other=0.0)
@@ -627,27 +651,7 @@ def _flat_segment(
     has_previous = (bits & 1) != 0
     has_next = (bits & 2) != 0
     caps = (bits >> 2) & 3
-    position_scale = tl.maximum(
-        tl.maximum(tl.maximum(tl.maximum(tl.abs(x0), tl.abs(y0)), tl.maximum(tl.abs(z0), tl.abs(x1))),
-                   tl.maximum(tl.maximum(tl.abs(y1), tl.abs(z1)), tl.maximum(tl.abs(x2), tl.abs(y2)))),
-        tl.maximum(tl.maximum(tl.abs(z2), tl.abs(x3)), tl.maximum(tl.abs(y3), tl.abs(z3))),
-    )  # fmt: skip
-    radius_scale = tl.maximum(tl.maximum(tl.abs(r0), tl.abs(r1)), tl.maximum(tl.abs(r2), tl.abs(r3)))
-    noise = 1.9073486328125e-06 * (position_scale + radius_scale)  # 16 eps: rounding of ray-space coordinates
-
-    # Culling as the round test's: every ribbon point is within the largest radius of the control points' hull
-    # (the cross-section's half-width is |r(u)|, and |p(u)| <= |r(u)| where the ray crosses it), at a depth
-    # inside the hull's; the end disks and spheres too.
-    reach = radius_scale * (1.0 + 2.0 * TOLERANCE) + 8.0 * noise
-    min_x = tl.minimum(tl.minimum(x0, x1), tl.minimum(x2, x3))
-    max_x = tl.maximum(tl.maximum(x0, x1), tl.maximum(x2, x3))
-    min_y = tl.minimum(tl.minimum(y0, y1), tl.minimum(y2, y3))
-    max_y = tl.maximum(tl.maximum(y0, y1), tl.maximum(y2, y3))
-    min_z = tl.minimum(tl.minimum(z0, z1), tl.minimum(z2, z3))
-    max_z = tl.maximum(tl.maximum(z0, z1), tl.maximum(z2, z3))
-    outside = (min_x > reach) | (max_x < -reach) | (min_y > reach) | (max_y < -reach)
-    outside = outside | (min_z - reach > hi) | (max_z + reach < lo)
-    live = mask & (outside == 0)
+    live, noise = _hull_cull(x0, y0, z0, r0, x1, y1, z1, r1, x2, y2, z2, r2, x3, y3, z3, r3, mask, lo, hi, TOLERANCE)
     hit = tl.zeros((LANES,), tl.int1)
     distance = tl.full((LANES,), float("inf"), tl.float32)
     if tl.max(live.to(tl.int32), axis=0) > 0:
@@ -656,15 +660,7 @@ def _flat_segment(
         cz0, cz1, cz2, cz3 = _power(z0, z1, z2, z3)
         cr0, cr1, cr2, cr3 = _power(r0, r1, r2, r3)
         if ITERATIONS > 0:
-            sx = x0 - 2.0 * x1 + x2
-            sy = y0 - 2.0 * y1 + y2
-            sz = z0 - 2.0 * z1 + z2
-            tx = x1 - 2.0 * x2 + x3
-            ty = y1 - 2.0 * y2 + y3
-            tz = z1 - 2.0 * z2 + z3
-            position = tl.maximum(_sqrt(sx * sx + sy * sy + sz * sz), _sqrt(tx * tx + ty * ty + tz * tz))
-            radius = tl.maximum(tl.abs(r0 - 2.0 * r1 + r2), tl.abs(r1 - 2.0 * r2 + r3))
-            grow = _div(0.75 * (position + radius), tl.full((LANES,), PIECES * PIECES, tl.float32))
+            grow = _chord_bound(x0, y0, z0, r0, x1, y1, z1, r1, x2, y2, z2, r2, x3, y3, z3, r3, LANES, PIECES)
         else:
             grow = tl.zeros((LANES,), tl.float32)
 
