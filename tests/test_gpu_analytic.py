@@ -38,6 +38,7 @@ from test_gpu_instanced import (
     ON_GPU,
     _instances,
     _mesh,
+    assert_same_fields,
     kernel_launches_here,
     kernel_test,
     run_kernel_tests_in_interpreter,
@@ -156,18 +157,6 @@ def check(structure, ray_args, functions: dict, *, any_hit: bool = False, cull: 
 
 def _mode(cull: int) -> str:
     return {0: "none", 1: "front", -1: "back"}[cull]
-
-
-def assert_same_fields(got, want, rtol: float = 1e-6) -> None:
-    """Every result field of the kernel path equals the portable path's (ids exactly)."""
-    assert set(got) == set(want)
-    for name in want:
-        pairs = zip(jax.tree.leaves(got[name]), jax.tree.leaves(want[name]), strict=True)
-        for a, b in ((np.asarray(a), np.asarray(b)) for a, b in pairs):
-            if a.dtype.kind == "f":
-                np.testing.assert_allclose(a, b, rtol=rtol, atol=1e-6, err_msg=name)
-            else:
-                np.testing.assert_array_equal(a, b, err_msg=name)
 
 
 def intersect_both(intersector_args: dict, ray: rt.Ray, structure, tags=(), rtol: float = 1e-6) -> tuple:

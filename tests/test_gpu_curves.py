@@ -26,6 +26,7 @@ from test_gpu_instanced import (
     INTERPRETED,
     LAUNCHES,
     ON_GPU,
+    assert_same_fields,
     kernel_launches_here,
     kernel_test,
     run_kernel_tests_in_interpreter,
@@ -272,14 +273,15 @@ def _check_hit_lists(curve_type: str) -> None:
 
 
 @kernel_test
-def test_intersector_fields_and_gradients_from_the_kernel(kernel_here, monkeypatch):
-    """``Intersector(backend="gpu")``: the kernel picks the leaf, the result fields (``curve_parameter``,
-    distances, ids) and the gradients come from the differentiable re-intersection, equal to the portable
-    path's; ray masks (a zero mask misses)."""
+@pytest.mark.parametrize(("curve_type", "end_caps", "seed"), [("round", "sphere", 12), ("flat", "disk", 22)])
+def test_intersector_fields_and_gradients_from_the_kernel(curve_type, end_caps, seed, kernel_here, monkeypatch):
+    """``Intersector(backend="gpu")`` on tubes or ribbons with triangles: the kernel picks the leaf, the result
+    fields (``curve_parameter``, distances, ids) and the gradients come from the differentiable
+    re-intersection, equal to the portable path's; ray masks (a zero mask misses)."""
     if not ON_GPU:
         monkeypatch.setattr(gpu, "unavailable_reason", lambda intersector: None)
-    geometry = hair(seed=12, strands=3, end_caps="sphere")
-    rng = np.random.default_rng(13)
+    geometry = hair(seed=seed, strands=3, end_caps=end_caps, curve_type=curve_type)
+    rng = np.random.default_rng(seed + 1)
     triangles = rt.TriangleGeometry(rng.uniform(-2, 2, (12, 3)).astype(np.float32))
     origin, direction = aimed_rays(rng, geometry, 32)
     mask = np.full(32, ALL_RAYS)
@@ -288,7 +290,7 @@ def test_intersector_fields_and_gradients_from_the_kernel(kernel_here, monkeypat
 
     def run(backend, points, ray_origin):
         g = rt.CurveGeometry(points, geometry.radii, geometry.indices, basis="catmull_rom", control_point_count=4,
-                             end_caps="sphere")  # fmt: skip
+                             end_caps=end_caps, curve_type=curve_type)  # fmt: skip
         structure = rt.build_primitive_structure([triangles, g])
         ray = rt.Ray(ray_origin, jnp.asarray(direction), mask=jnp.asarray(mask))
         return rt.Intersector(*tags, backend=backend).intersect(ray, structure)
@@ -299,12 +301,7 @@ def test_intersector_fields_and_gradients_from_the_kernel(kernel_here, monkeypat
         assert LAUNCHES, "the kernel did not run"
     types = np.asarray(want.type)
     assert (types == CURVE).sum() > 10 and (types[:3] == 0).all()
-    for name in want:
-        a, b = np.asarray(got[name]), np.asarray(want[name])
-        if a.dtype.kind == "f":
-            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6, err_msg=name)
-        else:
-            np.testing.assert_array_equal(a, b, err_msg=name)
+    assert_same_fields(got, want, rtol=1e-5)
 
     def loss(backend):
         def f(points, ray_origin):
@@ -401,53 +398,6 @@ def test_flat_joints_mixed_with_round_and_triangles(kernel_here):
     for options in (rt.CurveOptions(pieces=5, iterations=2), rt.CurveOptions(iterations=0)):
         check(rt.build_primitive_structure(geometry), ray_args, rt.Intersector(curve_options=options))
     _check_hit_lists("flat")
-
-
-@kernel_test
-def test_flat_intersector_fields_and_gradients_from_the_kernel(kernel_here, monkeypatch):
-    """``Intersector(backend="gpu")`` on ribbons with triangles: the kernel's leaf, the result fields and the
-    gradients equal the portable path's; ray masks (a zero mask misses)."""
-    if not ON_GPU:
-        monkeypatch.setattr(gpu, "unavailable_reason", lambda intersector: None)
-    geometry = hair(seed=22, strands=3, end_caps="disk", curve_type="flat")
-    rng = np.random.default_rng(23)
-    triangles = rt.TriangleGeometry(rng.uniform(-2, 2, (12, 3)).astype(np.float32))
-    origin, direction = aimed_rays(rng, geometry, 32)
-    mask = np.full(32, ALL_RAYS)
-    mask[:3] = 0
-    tags = (rt.tags.curve_data, rt.tags.triangle_data)
-
-    def run(backend, points, ray_origin):
-        g = rt.CurveGeometry(points, geometry.radii, geometry.indices, basis="catmull_rom", control_point_count=4,
-                             end_caps="disk", curve_type="flat")  # fmt: skip
-        structure = rt.build_primitive_structure([triangles, g])
-        ray = rt.Ray(ray_origin, jnp.asarray(direction), mask=jnp.asarray(mask))
-        return rt.Intersector(*tags, backend=backend).intersect(ray, structure)
-
-    args = (geometry.control_points, jnp.asarray(origin))
-    got, want = run("gpu", *args), run("portable", *args)
-    if not ON_GPU:
-        assert LAUNCHES, "the kernel did not run"
-    types = np.asarray(want.type)
-    assert (types == CURVE).sum() > 10 and (types[:3] == 0).all()
-    for name in want:
-        a, b = np.asarray(got[name]), np.asarray(want[name])
-        if a.dtype.kind == "f":
-            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6, err_msg=name)
-        else:
-            np.testing.assert_array_equal(a, b, err_msg=name)
-
-    def loss(backend):
-        def f(points, ray_origin):
-            result = run(backend, points, ray_origin)
-            hit = result.type == CURVE
-            return jnp.sum(jnp.where(hit, result.distance + result.curve_parameter, 0.0))
-
-        return jax.grad(f, argnums=(0, 1))(*args)
-
-    for a, b in zip(loss("gpu"), loss("portable"), strict=True):
-        assert np.isfinite(np.asarray(a)).all() and np.abs(np.asarray(b)).max() > 0
-        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-5)
 
 
 def _kernel_ir(monkeypatch, curves: tuple) -> str:

@@ -143,6 +143,19 @@ def assert_same(got, want: dict, *, rtol: float = 1e-6) -> None:
     assert not np.asarray(got.stack_overflow).any()
 
 
+def assert_same_fields(got, want, rtol: float = 1e-6) -> None:
+    """Every result field of the kernel path equals the portable path's: ids exactly, floats to ``rtol``
+    (``atol`` 1e-6)."""
+    assert set(got) == set(want)
+    for name in want:
+        pairs = zip(jax.tree.leaves(got[name]), jax.tree.leaves(want[name]), strict=True)
+        for a, b in ((np.asarray(a), np.asarray(b)) for a, b in pairs):
+            if a.dtype.kind == "f":
+                np.testing.assert_allclose(a, b, rtol=rtol, atol=1e-6, err_msg=name)
+            else:
+                np.testing.assert_array_equal(a, b, err_msg=name)
+
+
 def check(structure, ray_args, *, any_hit=False, cull=0, rtol=1e-6):
     scene, layout = traversal_scene(structure)
     got = gpu.trace_scene(scene, layout, *ray_args, any_hit=any_hit, cull=cull)
@@ -368,9 +381,4 @@ def test_intersector_reaches_the_kernel_for_instances(kernel_here, monkeypatch):
         assert LAUNCHES, "the kernel did not run"
     want = rt.Intersector(*tags, backend="portable").intersect(ray, structure)
     assert (np.asarray(want.type) != 0).sum() > 10
-    for name in want:
-        a, b = np.asarray(got[name]), np.asarray(want[name])
-        if a.dtype.kind == "f":
-            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6, err_msg=name)
-        else:
-            np.testing.assert_array_equal(a, b, err_msg=name)
+    assert_same_fields(got, want, rtol=1e-5)

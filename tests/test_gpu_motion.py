@@ -23,6 +23,7 @@ from test_gpu_instanced import (
     LAUNCHES,
     ON_GPU,
     _transforms,
+    assert_same_fields,
     kernel_launches_here,
     kernel_test,
     run_kernel_tests_in_interpreter,
@@ -308,12 +309,7 @@ def test_intersector_takes_the_kernel_for_motion(kernel_here, monkeypatch):
         assert LAUNCHES, "the kernel did not run"
     want = rt.Intersector(*tags, backend="portable").intersect(ray, structure)
     assert (np.asarray(want.type) != 0).sum() > 5
-    for name in want:
-        a, b = np.asarray(got[name]), np.asarray(want[name])
-        if a.dtype.kind == "f":
-            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6, err_msg=name)
-        else:
-            np.testing.assert_array_equal(a, b, err_msg=name)
+    assert_same_fields(got, want, rtol=1e-5)
 
 
 @kernel_test

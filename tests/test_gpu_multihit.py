@@ -26,6 +26,7 @@ from test_gpu_instanced import (
     INTERPRETED,
     LAUNCHES,
     ON_GPU,
+    assert_same_fields,
     kernel_launches_here,
     kernel_test,
     run_kernel_tests_in_interpreter,
@@ -277,12 +278,7 @@ def test_intersector_takes_the_kernel(k, kernel_here, monkeypatch):
         assert np.asarray(want.hit_overflow).sum() > 10
     if not ON_GPU:
         assert LAUNCHES, "the kernel did not run"
-    for name in want:
-        a, b = np.asarray(got[name]), np.asarray(want[name])
-        if a.dtype.kind == "f":
-            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6, err_msg=name)
-        else:
-            np.testing.assert_array_equal(a, b, err_msg=name)
+    assert_same_fields(got, want, rtol=1e-5)
 
 
 # --- coverage (no kernel run) -------------------------------------------------------------------------------------
