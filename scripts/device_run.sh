@@ -6,6 +6,8 @@
 #   bash scripts/device_run.sh more     instancing and curve benches
 #   bash scripts/device_run.sh custom   custom-geometry bench and tests, curve bench, sharded bench (all GPUs)
 #   bash scripts/device_run.sh final    GPU, custom-geometry, query and gradient tests; curve and instancing benches
+#   bash scripts/device_run.sh kernels  custom-geometry bench (kernel rows), curve bench on the ponytail and bear
+#   bash scripts/device_run.sh kerneltests  the analytic, multi-hit and curve kernel tests on the GPU
 set -uo pipefail
 part=${1:-core}
 out=${OUT:-/tmp/out}
@@ -42,6 +44,15 @@ case $part in
     step curves 200 python3 -m jaxrt.bench.curves --scenes ponytail bear --settings 8,3 4,2 --tubes 6,2 \
       --json "$out/curves.json"
     step instancing 120 python3 -m jaxrt.bench.instancing --json "$out/instancing.json"
+    ;;
+  kernels)
+    step custom 200 python3 -m jaxrt.bench.custom --json "$out/custom.json"
+    step curves 380 python3 -m jaxrt.bench.curves --scenes ponytail bear --settings 8,3 --tubes 6,2 \
+      --json "$out/curves.json"
+    ;;
+  kerneltests)
+    step kernel_tests 560 python3 -m pytest tests/test_gpu_analytic.py tests/test_gpu_multihit.py \
+      tests/test_gpu_curves.py -q -p no:cacheprovider -rs -k "not interpreter" --durations=10
     ;;
 esac
 for f in "$out"/*.log; do echo "##### $f"; tail -n 40 "$f"; done
