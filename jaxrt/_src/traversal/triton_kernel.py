@@ -1002,7 +1002,9 @@ def trace_kernel(
                     | (tri0.to(tl.int32) << 3) | (tri1.to(tl.int32) << 4), 0, _bit_or,
                 )  # fmt: skip
             else:
-                votes = tl.reduce(test0.to(tl.int32) | (test1.to(tl.int32) << 1) | (active.to(tl.int32) << 2), 0, _bit_or)
+                votes = tl.reduce(
+                    test0.to(tl.int32) | (test1.to(tl.int32) << 1) | (active.to(tl.int32) << 2), 0, _bit_or
+                )
             go = votes & 4
             if CURVE_BATCH > 0:
                 # A curve leaf's triangle test is replaced by its curve test: triangle leaves only here.
