@@ -1013,20 +1013,26 @@ def trace_kernel(
                 if (votes & 16) != 0:
                     h1, t1 = _leaf(tris_ptr, -1 - c1, tri1, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, ox, oy, oz, dx, dy, dz, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS, ANALYTIC)  # fmt: skip
                 if flush:
-                    # One call tests each lane's first curve leaf (child 0, else child 1), a second one child 1
-                    # of the lanes with two; each test is a function of the leaf, the ray and the bound only.
+                    # Round 0 tests each lane's first curve leaf (child 0, else child 1), round 1 child 1 of the
+                    # lanes with two (a loop: the test's code once). Each test depends on the leaf, the ray and
+                    # the bound only, so the order is free.
                     first_c = tl.where(curve0, c0, c1)
                     no_hit = tl.zeros((LANES,), tl.int1)
                     no_t = tl.full((LANES,), float("inf"), tl.float32)
-                    ha, ta = curve_leaf(curves_ptr, -1 - first_c, curve0 | curve1, no_hit, no_t, cray, t_min, distance, LANES, PIECES, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE, FLAT)  # fmt: skip
-                    hb = no_hit
-                    tb = no_t
-                    if (counts >> 16) > 0:
-                        hb, tb = curve_leaf(curves_ptr, -1 - c1, curve0 & curve1, no_hit, no_t, cray, t_min, distance, LANES, PIECES, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE, FLAT)  # fmt: skip
-                    h0 = tl.where(curve0, ha, h0)
-                    t0 = tl.where(curve0, ta, t0)
-                    h1 = tl.where(curve1, tl.where(curve0, hb, ha), h1)
-                    t1 = tl.where(curve1, tl.where(curve0, tb, ta), t1)
+                    rounds = 1 + ((counts >> 16) > 0).to(tl.int32)
+                    r = rounds * 0
+                    while r < rounds:
+                        again = r > 0
+                        r += 1
+                        child = tl.where(again, c1, first_c)
+                        mask = tl.where(again, curve0 & curve1, curve0 | curve1)
+                        hr, tr = curve_leaf(curves_ptr, -1 - child, mask, no_hit, no_t, cray, t_min, distance, LANES, PIECES, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE, FLAT)  # fmt: skip
+                        on0 = curve0 & (again == 0)
+                        on1 = curve1 & (curve0 == again)
+                        h0 = tl.where(on0, hr, h0)
+                        t0 = tl.where(on0, tr, t0)
+                        h1 = tl.where(on1, hr, h1)
+                        t1 = tl.where(on1, tr, t1)
             elif BRANCH:
                 # Skip a leaf test that no lane of the warp needs (a warp-uniform branch).
                 if (votes & 1) != 0:
