@@ -284,8 +284,8 @@ def kernel_call(
         SPHERE=sphere,
         FLAT=flat,
     )
-    if config.curves and levels == 0 and options.leaf_branch and options.curve_batch:
-        params.update(CURVE_BATCH=min(options.curve_batch, lanes))
+    batched = config.curves and levels == 0 and options.leaf_branch
+    params.update(CURVE_BATCH=min(options.curve_batch, lanes) if batched else 0)
     k = config.max_hits
     extra = (
         jax.ShapeDtypeStruct((max(1, levels * size),), jnp.int32),  # instance chain, (levels, size)
