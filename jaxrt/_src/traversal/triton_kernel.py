@@ -24,6 +24,17 @@ buffer laid out ``[program, stack entry, lane]``, so that a warp's accesses to o
 bounded whatever the batch size. The stack has ``STACK`` entries, the structure's depth bound, so it cannot
 overflow; a push that would is flagged anyway (and dropped).
 
+Deferred curve tests (compile-time constant ``CURVE_BATCH``; 0 tests curve leaves on sight and generates the
+code without it): the segment test is hundreds of instructions, and a warp runs it whenever one lane needs it.
+With ``CURVE_BATCH = B`` a step is split into a box phase and a leaf-and-advance phase: a lane whose step
+needs a curve test becomes *pending*, keeps that step's children, box hits and near distances, and takes no
+further step; the other lanes keep taking complete steps (triangle leaves tested on sight). When ``B`` lanes
+are pending, or no other lane can step, every pending lane's step is completed in the same iteration: one
+warp-wide curve test for the lanes' first curve leaves, a second only for the lanes with two, then the
+step's usual ending (nearer leaf kept, near child entered, far one pushed). A pending lane only waits: its
+distance bound, stack and state do not change meanwhile, so each ray makes the same decisions in the same
+order, and its result and counters are bit for bit those of the on-sight kernel.
+
 Instances (``LEVELS > 0``, a compile-time constant: with 0 the instance code is not generated): the kernel
 makes the decisions of the portable ``step.visit`` and ``step.transition``. An instance leaf is ordered and
 pushed like an inner node when its mask meets the ray's; a stack entry keeps its level in its low ``SHIFT``
@@ -838,7 +849,9 @@ def trace_kernel(
     (:func:`jaxrt._src.traversal.packed.pack_curves`) and ray block rows 24-33 each ray's curve frame; a leaf
     whose row is a curve takes the round or flat segment test of :mod:`jaxrt._src.traversal.triton_curves` after
     the triangle test, whose answer it replaces (a primitive structure only, ``LEVELS = 0``; the options
-    ``PIECES`` to ``FLAT`` are :func:`~jaxrt._src.traversal.triton_curves.curve_leaf`'s).
+    ``PIECES`` to ``FLAT`` are :func:`~jaxrt._src.traversal.triton_curves.curve_leaf`'s). ``CURVE_BATCH > 0``
+    defers curve tests until that many lanes wait for one (or no other lane can step; see the module
+    docstring): the same results, fewer warp-wide curve tests. 0 tests them on sight (binary nodes, ``BRANCH``).
     """
     pid = tl.program_id(0)
     lane = tl.arange(0, LANES)
