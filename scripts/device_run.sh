@@ -57,10 +57,10 @@ case $part in
       tests/test_gpu_curves.py -q -p no:cacheprovider -rs -k "not interpreter" --durations=10
     ;;
   curvebatch)
-    step curvebatch 330 python3 -m jaxrt.bench.curves --scenes ponytail bear --settings 8,3 --curve-batch 0 16 8 \
+    step curvebatch 320 python3 -m jaxrt.bench.curves --scenes ponytail bear --settings 8,3 --curve-batch 0 16 8 \
       --tubes 6,2 --no-generic --json "$out/curvebatch.json"
-    step curvebatch_tests 190 python3 -m pytest tests/test_gpu_curves.py -q -p no:cacheprovider -rs --durations=5 \
-      -k "not interpreter and (bezier-4-sphere or kinked)"
+    step curvebatch_tests 180 python3 -m pytest tests/test_gpu_curves.py -q -p no:cacheprovider -rs --durations=5 \
+      -k "not interpreter and (test_every_basis_and_cap and bezier-4-sphere or kinked)"
     ;;
 esac
 for f in "$out"/*.log; do echo "##### $f"; tail -n 40 "$f"; done
