@@ -8,6 +8,8 @@
 #   bash scripts/device_run.sh final    GPU, custom-geometry, query and gradient tests; curve and instancing benches
 #   bash scripts/device_run.sh kernels  custom-geometry bench (kernel rows), curve bench on the ponytail and bear
 #   bash scripts/device_run.sh kerneltests  the analytic, multi-hit and curve kernel tests on the GPU
+#   bash scripts/device_run.sh curvebatch  curve bench with deferred curve tests off and at two thresholds (each row
+#                                          compared bit for bit with the first), then a few curve kernel tests
 set -uo pipefail
 part=${1:-core}
 out=${OUT:-/tmp/out}
@@ -53,6 +55,12 @@ case $part in
   kerneltests)
     step kernel_tests 560 python3 -m pytest tests/test_gpu_analytic.py tests/test_gpu_multihit.py \
       tests/test_gpu_curves.py -q -p no:cacheprovider -rs -k "not interpreter" --durations=10
+    ;;
+  curvebatch)
+    step curvebatch 320 python3 -m jaxrt.bench.curves --scenes ponytail bear --settings 8,3 --curve-batch 0 16 8 \
+      --tubes 6,2 --no-generic --json "$out/curvebatch.json"
+    step curvebatch_tests 180 python3 -m pytest tests/test_gpu_curves.py -q -p no:cacheprovider -rs --durations=5 \
+      -k "not interpreter and (test_every_basis_and_cap and bezier-4-sphere or kinked)"
     ;;
 esac
 for f in "$out"/*.log; do echo "##### $f"; tail -n 40 "$f"; done

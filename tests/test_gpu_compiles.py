@@ -35,6 +35,14 @@ VARIANTS = {
     "round curves, linear, max_hits 4": dict(curves=(1, 0, 0, 1e-3, False, False, 0), max_hits=4),
     "flat curves, disk and sphere caps, counting": dict(curves=(8, 3, 3, 1e-3, True, True, 1), count=True),
     "round and flat curves, no Newton steps, any hit": dict(curves=(5, 0, 0, 1e-3, True, False, 2), any_hit=True),
+    "round curves tested on sight (curve_batch 0)": dict(
+        curves=(8, 3, 2, 1e-3, False, True, 0), options=dataclasses.replace(gpu.DEFAULT_OPTIONS, curve_batch=0)
+    ),
+    "round and flat curves, batches of 32, max_hits 4": dict(
+        curves=(8, 3, 3, 1e-3, True, True, 2),
+        max_hits=4,
+        options=dataclasses.replace(gpu.DEFAULT_OPTIONS, curve_batch=32),
+    ),
 }
 
 

@@ -400,6 +400,46 @@ def test_flat_joints_mixed_with_round_and_triangles(kernel_here):
     _check_hit_lists("flat")
 
 
+def _bits(tree):
+    """Every array of a traversal result as raw bytes (distances compared bit for bit)."""
+    return [np.asarray(a).tobytes() for a in jax.tree_util.tree_leaves(tree)]
+
+
+@kernel_test
+def test_curve_batches_change_no_decision(kernel_here):
+    """Deferred curve tests (``KernelOptions.curve_batch``) only make rays wait: for every threshold the result
+    is the on-sight kernel's bit for bit (leaf, distance, counters, the K nearest hits and counts), with
+    triangles, round and flat segments in one structure, nearest and any hit."""
+    linear, bezier = _flat_kinked("sphere")
+    round_ = hair(seed=30, strands=3, end_caps="disk")
+    rng = np.random.default_rng(31)
+    triangles = rt.TriangleGeometry(rng.uniform(-1, 2.5, (12, 3)).astype(np.float32))
+    view = scene_view(rt.build_primitive_structure([triangles, bezier, linear, round_]))
+    n = 96
+    origin, direction = aimed_rays(rng, round_, n // 2)
+    joints = np.array([[1, 0, 1], [1, 0, 0], [1.1, 1, 0]], np.float64)[rng.integers(0, 3, n // 2)]
+    aimed = rng.normal(size=(n // 2, 3))
+    aimed /= np.linalg.norm(aimed, axis=1, keepdims=True)
+    origin = np.concatenate([origin, joints + rng.normal(scale=0.1, size=(n // 2, 3)) - 8.0 * aimed])
+    direction = np.concatenate([direction, aimed])
+    t_max = np.where(rng.random(n) < 0.2, rng.uniform(6.0, 9.0, n), np.inf)
+    args = (jnp.asarray(origin, jnp.float32), jnp.asarray(direction, jnp.float32), jnp.zeros(n, jnp.float32),
+            jnp.asarray(t_max, jnp.float32), jnp.asarray(rng.random(n) > 0.05), jnp.full(n, ALL_RAYS, jnp.uint32))  # fmt: skip
+    intersector = rt.Intersector()
+    curves = gpu.curve_leaves(view, leaf_tests.curve_configuration(intersector, view))
+    queries = [dict(any_hit=False), dict(any_hit=True), dict(any_hit=False, max_hits=3)]
+    queries.append(dict(any_hit=False, count_all=True))
+    for query in queries:
+        runs = {}
+        for batch in (0, 1, 7, 32) if query == queries[0] else (0, 5):
+            options = gpu.KernelOptions(curve_batch=batch)
+            runs[batch] = gpu.trace_scene(view.traversal, view.layout, *args, cull=0, curves=curves, options=options,
+                                          **query)  # fmt: skip
+        for batch, got in runs.items():
+            assert _bits(got) == _bits(runs[0]), (query, batch)
+        assert (np.asarray(runs[0].leaf) >= 0).sum() > n // 3 or query.get("count_all")
+
+
 def _kernel_ir(monkeypatch, curves: tuple) -> str:
     """Triton IR of ``trace_kernel`` of a primitive structure (``test_gpu_multihit._kernel_ir``), with the curve
     options ``curves`` (``()``: no curves)."""

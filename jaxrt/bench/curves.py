@@ -17,6 +17,7 @@ Two parts:
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Sequence
 from typing import NamedTuple
@@ -626,9 +627,10 @@ def bench_scene(scene: HairScene, config: dict, *, seed: int = 0, log=print) -> 
     log(f"{scene.name}: {geometry.primitive_count} segments, radius {radius:.4g}, {len(origin)} rays "
         f"({len(pick)} checked, reference {reference_s:.1f} s, {ref_hit.mean():.0%} hit)")  # fmt: skip
 
-    def measure(method, setting, structure, intersector, segments):
+    def measure(method, setting, structure, intersector, segments, same_as=None):
         timing, result = timed(lambda: intersector.intersect(rays, structure).distance, config["repeats"])
-        distance = np.asarray(result)[pick]
+        full = np.asarray(result)
+        distance = full[pick]
         row = dict(
             method=method,
             setting=setting,
@@ -637,30 +639,40 @@ def bench_scene(scene: HairScene, config: dict, *, seed: int = 0, log=print) -> 
             bytes_per_segment=_structure_bytes(structure) / segments,
             **_errors(np.isfinite(distance), distance, ref_hit, ref_distance, ambiguous, length, radius),
         )
+        if same_as is not None:  # every distance bit for bit against an earlier row's
+            row["bitwise_equal"] = bool(np.array_equal(full.view(np.uint32), same_as.view(np.uint32)))
         out["rows"].append(row)
         log(_row_text(row))
-        return row
+        return row, full
 
     build = jax.jit(rt.build_primitive_structure)
     structure = build(geometry)
+    batches = config.get("curve_batch") or (None,)
     for pieces, iterations in config["settings"]:
         options = rt.CurveOptions(pieces=pieces, iterations=iterations)
         name = "chord" if iterations == 0 else "newton"
-        measure(
-            f"curve {name}",
-            f"{pieces} pieces, {iterations} it",
-            structure,
-            rt.Intersector(curve_options=options),
-            geometry.primitive_count,
-        )
+        first = None
+        for batch in batches:
+            suffix = "" if batch is None else f", batch {batch}"
+            with _kernel_curve_batch(batch):
+                _, full = measure(
+                    f"curve {name}",
+                    f"{pieces} pieces, {iterations} it{suffix}",
+                    structure,
+                    rt.Intersector(curve_options=options),
+                    geometry.primitive_count,
+                    same_as=first,
+                )
+            first = full if first is None else first
     # The gain of specialisation: the same hair in a structure that also holds a far-away flat segment with
     # disk caps, so that the compiled test handles both types and all caps present.
-    far = np.asarray(geometry.control_points).max(0) + 1e3
-    other = rt.CurveGeometry(far + np.eye(3, dtype=np.float32)[:2], [0.1, 0.1], [0], basis="linear",
-                             control_point_count=2, curve_type="flat", end_caps="disk")  # fmt: skip
-    generic = build([geometry, other])
-    measure("curve generic", "8 pieces, 3 it", generic, rt.Intersector(), geometry.primitive_count)
-    del generic
+    if config.get("generic", True):
+        far = np.asarray(geometry.control_points).max(0) + 1e3
+        other = rt.CurveGeometry(far + np.eye(3, dtype=np.float32)[:2], [0.1, 0.1], [0], basis="linear",
+                                 control_point_count=2, curve_type="flat", end_caps="disk")  # fmt: skip
+        generic = build([geometry, other])
+        measure("curve generic", "8 pieces, 3 it", generic, rt.Intersector(), geometry.primitive_count)
+        del generic
     for sides, rings in config["tubes"]:
         triangles = rt.TriangleGeometry(tessellate(geometry, sides, rings).reshape(-1, 3))
         tube = rt.build_primitive_structure(triangles)
@@ -669,11 +681,34 @@ def bench_scene(scene: HairScene, config: dict, *, seed: int = 0, log=print) -> 
     return out
 
 
+@contextlib.contextmanager
+def _kernel_curve_batch(batch: int | None):
+    """Trace with the GPU kernel's ``curve_batch`` set to ``batch`` (``None``: the default), compiled afresh."""
+    if batch is None:
+        yield
+        return
+    import dataclasses
+
+    import jax
+
+    from jaxrt._src.traversal import gpu
+
+    default = gpu.DEFAULT_OPTIONS
+    gpu.DEFAULT_OPTIONS = dataclasses.replace(default, curve_batch=batch)
+    jax.clear_caches()  # the intersect functions are compiled per intersector, not per kernel option
+    try:
+        yield
+    finally:
+        gpu.DEFAULT_OPTIONS = default
+        jax.clear_caches()
+
+
 def _row_text(row: dict) -> str:
+    same = {True: "  bitwise equal to the first", False: "  DIFFERS from the first"}.get(row.get("bitwise_equal"), "")
     return (
         f"  {row['method']:<14} {row['setting']:<20} {row['mrays_s']:8.3f} Mrays/s  compile {row['compile_s']:5.1f} s  "
         f"mismatch {row['mismatches']:4d}/{row['decided_rays']:<5d} error/r median {row['error_median']:.1e} "
-        f"p99 {row['error_p99']:.1e} max {row['error_max']:.1e}  {row['bytes_per_segment']:7.0f} B/segment"
+        f"p99 {row['error_p99']:.1e} max {row['error_max']:.1e}  {row['bytes_per_segment']:7.0f} B/segment{same}"
     )
 
 
@@ -720,6 +755,15 @@ def main(argv: Sequence[str] | None = None) -> dict:
         "--settings", nargs="+", metavar="P,I", help="curve settings as pieces,iterations (default: the table's five)"
     )
     parser.add_argument("--tubes", nargs="+", metavar="S,R", help="tube rates as sides,rings (default: three)")
+    parser.add_argument(
+        "--curve-batch",
+        nargs="+",
+        type=int,
+        metavar="N",
+        help="a kernel row per setting for each GPU kernel curve_batch N (0: curve tests on sight); each row's "
+        "distances are compared bit for bit with the first's",
+    )
+    parser.add_argument("--no-generic", action="store_true", help="skip the generic-code row")
     args = parser.parse_args(argv)
     config = dict(_QUICK if args.quick else _DEFAULTS)
     for key in ("rays", "reference_rays", "strands", "repeats"):
@@ -728,6 +772,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     pairs = lambda items: tuple(tuple(int(x) for x in item.split(",")) for item in items)  # noqa: E731
     config["settings"] = pairs(args.settings) if args.settings else CURVE_SETTINGS
     config["tubes"] = pairs(args.tubes) if args.tubes else TUBE_RATES
+    config["curve_batch"] = tuple(args.curve_batch or ())
+    config["generic"] = not args.no_generic
     data_dir = args.data or default_data_dir()
     names = args.scenes or (["ponytail"] if args.quick else ["ponytail", "bear"])
     start = time.perf_counter()

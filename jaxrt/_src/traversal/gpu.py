@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import os
 from typing import Any, NamedTuple
 
 import jax
@@ -91,6 +92,11 @@ SCENE_ARGS = 16
 RAY_ARGS = 8
 
 
+#: Default :attr:`KernelOptions.curve_batch`; the environment variable ``JAXRT_CURVE_BATCH`` (read at import)
+#: overrides it, so that benches can compare thresholds without editing code.
+CURVE_BATCH = int(os.environ.get("JAXRT_CURVE_BATCH", "16"))
+
+
 @dataclasses.dataclass(frozen=True)
 class KernelOptions:
     """Static code-generation choices of the kernel (all give the same results except ``fp_fusion``).
@@ -108,6 +114,10 @@ class KernelOptions:
         among equally distant triangles and the first hit of an any-hit query may differ. One primitive
         structure only: instanced scenes and batches of scenes are traced with the binary nodes.
       leaf_size: most leaves in one leaf cluster of the 4-wide tree (1-4).
+      curve_batch: with curve leaves (binary nodes, ``leaf_branch``), a ray whose step needs a curve test waits
+        until this many rays of the warp wait (or none other can step), so that one warp-wide curve test serves
+        them all; the other rays keep taking steps meanwhile. Each ray makes the same decisions either way.
+        0 tests curves on sight (each step that needs one runs the whole test for the warp).
 
     The defaults were the fastest on an H200 (``python -m jaxrt.bench.gpu --variants``).
     """
@@ -118,12 +128,15 @@ class KernelOptions:
     fp_fusion: bool = False
     node_width: int = 2
     leaf_size: int = 4
+    curve_batch: int = CURVE_BATCH
 
     def __post_init__(self):
         if self.node_width not in (2, 4):
             raise ValueError(f"KernelOptions: node_width must be 2 or 4, got {self.node_width}")
         if not 1 <= self.leaf_size <= packed.MAX_LEAF_SIZE:
             raise ValueError(f"KernelOptions: leaf_size must be in 1..{packed.MAX_LEAF_SIZE}, got {self.leaf_size}")
+        if not 0 <= self.curve_batch <= 255:
+            raise ValueError(f"KernelOptions: curve_batch must be in 0..255, got {self.curve_batch}")
 
 
 DEFAULT_OPTIONS = KernelOptions()
@@ -271,6 +284,8 @@ def kernel_call(
         SPHERE=sphere,
         FLAT=flat,
     )
+    batched = config.curves and levels == 0 and options.leaf_branch
+    params.update(CURVE_BATCH=min(options.curve_batch, lanes) if batched else 0)
     k = config.max_hits
     extra = (
         jax.ShapeDtypeStruct((max(1, levels * size),), jnp.int32),  # instance chain, (levels, size)

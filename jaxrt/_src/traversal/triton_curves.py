@@ -253,6 +253,13 @@ def curve_ray(rays_ptr, n_rays, ray, ox, oy, oz):
 
 
 @triton.jit
+def is_curve_leaf(curves_ptr, leaf, mask):
+    """Whether leaf ``leaf`` is a curve (its row's flags have ``IS_CURVE``), read where ``mask``."""
+    bits = tl.load(curves_ptr + leaf * CURVE_WIDTH + 19, mask=mask, other=0.0).to(tl.int32, bitcast=True)
+    return mask & ((bits & 32) != 0)
+
+
+@triton.jit
 def curve_leaf(
     curves_ptr,
     leaf,

@@ -24,6 +24,17 @@ buffer laid out ``[program, stack entry, lane]``, so that a warp's accesses to o
 bounded whatever the batch size. The stack has ``STACK`` entries, the structure's depth bound, so it cannot
 overflow; a push that would is flagged anyway (and dropped).
 
+Deferred curve tests (compile-time constant ``CURVE_BATCH``; 0 tests curve leaves on sight and generates the
+code without it): the segment test is hundreds of instructions, and a warp runs it whenever one lane needs it.
+With ``CURVE_BATCH = B`` a step is split into a box phase and a leaf-and-advance phase: a lane whose step
+needs a curve test becomes *pending*, keeps that step's children, box hits and near distances, and takes no
+further step; the other lanes keep taking complete steps (triangle leaves tested on sight). When ``B`` lanes
+are pending, or no other lane can step, every pending lane's step is completed in the same iteration: one
+warp-wide curve test for the lanes' first curve leaves, a second only for the lanes with two, then the
+step's usual ending (nearer leaf kept, near child entered, far one pushed). A pending lane only waits: its
+distance bound, stack and state do not change meanwhile, so each ray makes the same decisions in the same
+order, and its result and counters are bit for bit those of the on-sight kernel.
+
 Instances (``LEVELS > 0``, a compile-time constant: with 0 the instance code is not generated): the kernel
 makes the decisions of the portable ``step.visit`` and ``step.transition``. An instance leaf is ordered and
 pushed like an inner node when its mask meets the ray's; a stack entry keeps its level in its low ``SHIFT``
@@ -75,7 +86,7 @@ import triton
 import triton.language as tl
 
 from jaxrt._src.traversal.triton_analytic import analytic_hit
-from jaxrt._src.traversal.triton_curves import curve_leaf, curve_ray
+from jaxrt._src.traversal.triton_curves import curve_leaf, curve_ray, is_curve_leaf
 
 
 @triton.jit
@@ -806,6 +817,7 @@ def trace_kernel(
     DISK: tl.constexpr = False,
     SPHERE: tl.constexpr = False,
     FLAT: tl.constexpr = 0,
+    CURVE_BATCH: tl.constexpr = 0,
 ):
     """Trace ``n_rays`` rays (a multiple of ``LANES``); outputs as :class:`~jaxrt._src.traversal.scene.TraversalResult`.
 
@@ -837,7 +849,9 @@ def trace_kernel(
     (:func:`jaxrt._src.traversal.packed.pack_curves`) and ray block rows 24-33 each ray's curve frame; a leaf
     whose row is a curve takes the round or flat segment test of :mod:`jaxrt._src.traversal.triton_curves` after
     the triangle test, whose answer it replaces (a primitive structure only, ``LEVELS = 0``; the options
-    ``PIECES`` to ``FLAT`` are :func:`~jaxrt._src.traversal.triton_curves.curve_leaf`'s).
+    ``PIECES`` to ``FLAT`` are :func:`~jaxrt._src.traversal.triton_curves.curve_leaf`'s). ``CURVE_BATCH > 0``
+    defers curve tests until that many lanes wait for one (or no other lane can step; see the module
+    docstring): the same results, fewer warp-wide curve tests. 0 tests them on sight (binary nodes, ``BRANCH``).
     """
     pid = tl.program_id(0)
     lane = tl.arange(0, LANES)
@@ -900,23 +914,38 @@ def trace_kernel(
                 dz = 0.0
         if CURVES:
             cray = curve_ray(rays_ptr, n_rays, ray, ox, oy, oz)
+        if CURVE_BATCH > 0:
+            # Deferred curve tests: a pending lane keeps its step's children, box results and curve flags.
+            pending = tl.zeros((LANES,), tl.int1)
+            kept_c0 = tl.zeros((LANES,), tl.int32)
+            kept_c1 = tl.zeros((LANES,), tl.int32)
+            kept_hit0 = tl.zeros((LANES,), tl.int1)
+            kept_hit1 = tl.zeros((LANES,), tl.int1)
+            kept_near0 = tl.zeros((LANES,), tl.float32)
+            kept_near1 = tl.zeros((LANES,), tl.float32)
+            kept_curve0 = tl.zeros((LANES,), tl.int1)
+            kept_curve1 = tl.zeros((LANES,), tl.int1)
         # One warp reduction per step: bit 0 / 1, some lane tests leaf child 0 / 1; bit 2, some lane was
         # active when the step began. The loop therefore ends one (fully masked, no-op) step after the last ray.
         go = tl.max(1 - done, axis=0)
         while go > 0:
             active = done == 0
+            if CURVE_BATCH > 0:
+                fresh = active & (pending == 0)  # pending lanes take no box step
+            else:
+                fresh = active
             if NODE_KEYS > 0:
                 # The node's child boxes blended at the ray's time (the portable ``_node_boxes_at``).
                 row = node * NODE_KEYS + key_index
                 lo0x, hi0x, lo1x, hi1x, lo0y, hi0y, lo1y, hi1y, lo0z, hi0z, lo1z, hi1z = _box_quads(
-                    nodes_ptr, row, active, key_rest, key_weight, LANES, VECTOR
+                    nodes_ptr, row, fresh, key_rest, key_weight, LANES, VECTOR
                 )
-                c0f, c1f, _, _ = _quad(nodes_ptr, row, 16, 12, active, LANES, VECTOR)
+                c0f, c1f, _, _ = _quad(nodes_ptr, row, 16, 12, fresh, LANES, VECTOR)
             else:
-                lo0x, hi0x, lo1x, hi1x = _quad(nodes_ptr, node, 16, 0, active, LANES, VECTOR)
-                lo0y, hi0y, lo1y, hi1y = _quad(nodes_ptr, node, 16, 4, active, LANES, VECTOR)
-                lo0z, hi0z, lo1z, hi1z = _quad(nodes_ptr, node, 16, 8, active, LANES, VECTOR)
-                c0f, c1f, _, _ = _quad(nodes_ptr, node, 16, 12, active, LANES, VECTOR)
+                lo0x, hi0x, lo1x, hi1x = _quad(nodes_ptr, node, 16, 0, fresh, LANES, VECTOR)
+                lo0y, hi0y, lo1y, hi1y = _quad(nodes_ptr, node, 16, 4, fresh, LANES, VECTOR)
+                lo0z, hi0z, lo1z, hi1z = _quad(nodes_ptr, node, 16, 8, fresh, LANES, VECTOR)
+                c0f, c1f, _, _ = _quad(nodes_ptr, node, 16, 12, fresh, LANES, VECTOR)
             c0 = c0f.to(tl.int32, bitcast=True)
             c1 = c1f.to(tl.int32, bitcast=True)
             hit0, near0 = _slab(
@@ -925,22 +954,99 @@ def trace_kernel(
             hit1, near1 = _slab(
                 lo1x, hi1x, lo1y, hi1y, lo1z, hi1z, ox, oy, oz, ix, iy, iz, t_min, distance, FAR_SCALE, PARALLEL
             )
-            hit0 = hit0 & active
-            hit1 = hit1 & active
+            hit0 = hit0 & fresh
+            hit1 = hit1 & fresh
+            if CURVE_BATCH > 0:
+                c0 = tl.where(pending, kept_c0, c0)
+                c1 = tl.where(pending, kept_c1, c1)
+                hit0 = tl.where(pending, kept_hit0, hit0)
+                hit1 = tl.where(pending, kept_hit1, hit1)
+                near0 = tl.where(pending, kept_near0, near0)
+                near1 = tl.where(pending, kept_near1, near1)
             if LEVELS > 0:
                 test0, inner0, entry0 = _classify(inst_ptr, imotion_ptr, c0, hit0, n_primitives, ray_mask, time, IWIDTH)
                 test1, inner1, entry1 = _classify(inst_ptr, imotion_ptr, c1, hit1, n_primitives, ray_mask, time, IWIDTH)
             else:
                 test0 = hit0 & (c0 < 0)
                 test1 = hit1 & (c1 < 0)
+            if CURVE_BATCH > 0:
+                # A lane whose step tests a curve leaf waits (pending, its state kept) until CURVE_BATCH lanes
+                # wait or no other lane can take a step; then every lane's step is completed, curves tested
+                # together. A lane only waits, so its decisions are unchanged. One warp reduction counts the
+                # pending lanes, the lanes free to step and the pending lanes with two curve leaves.
+                curve0 = tl.where(pending, kept_curve0, test0 & is_curve_leaf(curves_ptr, -1 - c0, test0 & fresh))
+                curve1 = tl.where(pending, kept_curve1, test1 & is_curve_leaf(curves_ptr, -1 - c1, test1 & fresh))
+                pending = curve0 | curve1
+                free = active & (pending == 0)
+                counts = tl.sum(
+                    pending.to(tl.int32) + (free.to(tl.int32) << 8) + ((curve0 & curve1).to(tl.int32) << 16), axis=0
+                )
+                waiting = counts & 255
+                flush = (waiting > 0) & ((waiting >= CURVE_BATCH) | ((counts & 0xFF00) == 0))
+                stepping = tl.where(flush, active, free)
+                kept_c0 = c0
+                kept_c1 = c1
+                kept_hit0 = hit0
+                kept_hit1 = hit1
+                kept_near0 = near0
+                kept_near1 = near1
+                kept_curve0 = curve0
+                kept_curve1 = curve1
+                hit0 = hit0 & stepping
+                hit1 = hit1 & stepping
+                test0 = test0 & stepping
+                test1 = test1 & stepping
+                curve0 = curve0 & stepping
+                curve1 = curve1 & stepping
+                pending = pending & (stepping == 0)
+            else:
+                stepping = active
             # Both leaves are tested against the distance bound before this step, as in the portable path.
             h0 = tl.zeros((LANES,), tl.int1)
             h1 = tl.zeros((LANES,), tl.int1)
             t0 = tl.full((LANES,), float("inf"), tl.float32)
             t1 = tl.full((LANES,), float("inf"), tl.float32)
-            votes = tl.reduce(test0.to(tl.int32) | (test1.to(tl.int32) << 1) | (active.to(tl.int32) << 2), 0, _bit_or)
+            if CURVE_BATCH > 0:
+                # Bits 3 / 4: some lane tests a triangle (not curve) leaf child 0 / 1.
+                tri0 = test0 & (curve0 == 0)
+                tri1 = test1 & (curve1 == 0)
+                votes = tl.reduce(
+                    test0.to(tl.int32) | (test1.to(tl.int32) << 1) | (active.to(tl.int32) << 2)
+                    | (tri0.to(tl.int32) << 3) | (tri1.to(tl.int32) << 4), 0, _bit_or,
+                )  # fmt: skip
+            else:
+                votes = tl.reduce(
+                    test0.to(tl.int32) | (test1.to(tl.int32) << 1) | (active.to(tl.int32) << 2), 0, _bit_or
+                )
             go = votes & 4
-            if BRANCH:
+            if CURVE_BATCH > 0:
+                # A curve leaf's triangle test is replaced by its curve test: triangle leaves only here.
+                if (votes & 8) != 0:
+                    h0, t0 = _leaf(tris_ptr, -1 - c0, tri0, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, ox, oy, oz, dx, dy, dz, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS, ANALYTIC)  # fmt: skip
+                if (votes & 16) != 0:
+                    h1, t1 = _leaf(tris_ptr, -1 - c1, tri1, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, ox, oy, oz, dx, dy, dz, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS, ANALYTIC)  # fmt: skip
+                if flush:
+                    # Round 0 tests each lane's first curve leaf (child 0, else child 1), round 1 child 1 of the
+                    # lanes with two (a loop: the test's code once). Each test depends on the leaf, the ray and
+                    # the bound only, so the order is free.
+                    first_c = tl.where(curve0, c0, c1)
+                    no_hit = tl.zeros((LANES,), tl.int1)
+                    no_t = tl.full((LANES,), float("inf"), tl.float32)
+                    rounds = 1 + ((counts >> 16) > 0).to(tl.int32)
+                    r = rounds * 0
+                    while r < rounds:
+                        again = r > 0
+                        r += 1
+                        child = tl.where(again, c1, first_c)
+                        mask = tl.where(again, curve0 & curve1, curve0 | curve1)
+                        hr, tr = curve_leaf(curves_ptr, -1 - child, mask, no_hit, no_t, cray, t_min, distance, LANES, PIECES, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE, FLAT)  # fmt: skip
+                        on0 = curve0 & (again == 0)
+                        on1 = curve1 & (curve0 == again)
+                        h0 = tl.where(on0, hr, h0)
+                        t0 = tl.where(on0, tr, t0)
+                        h1 = tl.where(on1, hr, h1)
+                        t1 = tl.where(on1, tr, t1)
+            elif BRANCH:
                 # Skip a leaf test that no lane of the warp needs (a warp-uniform branch).
                 if (votes & 1) != 0:
                     h0, t0 = _leaf(tris_ptr, -1 - c0, test0, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, ox, oy, oz, dx, dy, dz, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS, ANALYTIC)  # fmt: skip
@@ -965,11 +1071,11 @@ def trace_kernel(
                 found = (h0 | h1) & ((best_t < distance) | ((leaf < 0) & (best_t <= distance)))
                 if MAX_HITS > 0:
                     distance, total = _hit_lists(
-                        hit_distance_ptr, hit_leaf_ptr, hit_chain_ptr, n_rays, ray, votes, active, h0, t0, c0, h1,
+                        hit_distance_ptr, hit_leaf_ptr, hit_chain_ptr, n_rays, ray, votes, stepping, h0, t0, c0, h1,
                         t1, c1, distance, total, level_base, level, MAX_HITS, LEVELS, LANES, BRANCH,
                     )  # fmt: skip
                     # The first hit (the portable state's leaf, read by the next step's ``found``).
-                    leaf = tl.where(active, tl.load(hit_leaf_ptr + ray, mask=active, other=-1), leaf)
+                    leaf = tl.where(stepping, tl.load(hit_leaf_ptr + ray, mask=stepping, other=-1), leaf)
                 elif COUNT:
                     total = total + h0.to(tl.int32) + h1.to(tl.int32)
                 else:
@@ -979,13 +1085,13 @@ def trace_kernel(
                 near = tl.where(near_first, entry0, entry1)
                 far = tl.where(near_first, entry1, entry0)
                 node, level, depth, overflow, done = _advance_levels(
-                    stack_base, active, inner0, inner1, entry0, entry1, near, far, node, level, depth, overflow,
+                    stack_base, stepping, inner0, inner1, entry0, entry1, near, far, node, level, depth, overflow,
                     leaf, done, STACK, ANY_HIT, LANES, SHIFT,
                 )  # fmt: skip
             else:
                 if MAX_HITS > 0:
                     distance, total = _hit_lists(
-                        hit_distance_ptr, hit_leaf_ptr, hit_chain_ptr, n_rays, ray, votes, active, h0, t0, c0, h1,
+                        hit_distance_ptr, hit_leaf_ptr, hit_chain_ptr, n_rays, ray, votes, stepping, h0, t0, c0, h1,
                         t1, c1, distance, total, stack_base, 0, MAX_HITS, LEVELS, LANES, BRANCH,
                     )  # fmt: skip
                 elif COUNT:
@@ -999,8 +1105,8 @@ def trace_kernel(
                 both = inner0 & inner1
                 depth, overflow = _push(stack_base, depth, overflow, tl.where(both, far, -1), STACK, LANES)
                 enter = tl.where(both, near, tl.where(inner0, c0, tl.where(inner1, c1, -1)))
-                node, depth, done = _advance(stack_base, active, enter, node, depth, leaf, done, ANY_HIT, LANES)
-            visited = visited + active.to(tl.int32)
+                node, depth, done = _advance(stack_base, stepping, enter, node, depth, leaf, done, ANY_HIT, LANES)
+            visited = visited + stepping.to(tl.int32)
             tested = tested + test0.to(tl.int32) + test1.to(tl.int32)
             if LEVELS > 0:
                 # Entering an instance, or returning to a shallower level: a warp-uniform branch.
