@@ -139,7 +139,14 @@ def _run(params: tuple, arrays: list[np.ndarray]) -> tuple[np.ndarray, ...]:
     )
     consts, flags = constants(dtype), np.asarray(params, np.int64)
     counter = np.zeros(1, np.int64)
-    run = functools.partial(cpu_kernel.trace_rays, *arrays, consts, flags, counter, CHUNK, n, *out, *hits)
+    if levels == 0 and not hit_list and not params[9]:  # triangles only, no instances: the lean loop
+        rays = arrays[_RAYS : _RAYS + 5]
+        run = functools.partial(
+            cpu_kernel.trace_flat, *arrays[:4], *rays, consts, params[0], params[3], bool(params[4]), params[5],
+            counter, CHUNK, n, out[0], out[1], *out[3:],
+        )  # fmt: skip
+    else:
+        run = functools.partial(cpu_kernel.trace_rays, *arrays, consts, flags, counter, CHUNK, n, *out, *hits)
     workers = min(threads(), -(-n // MIN_TASK))
     # The kernel releases the GIL; each thread claims chunks of rays from the shared counter until none is
     # left, so uneven rays balance without a task per chunk. This thread is one of the workers.

@@ -28,7 +28,7 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
-__all__ = ["trace_rays"]
+__all__ = ["trace_flat", "trace_rays"]
 
 #: Unsigned offsets: rows are read from flat views at unsigned indices (no negative-index wraparound code).
 _U1 = np.uint64(1)
@@ -538,3 +538,151 @@ def trace_rays(
             out_visited[i] = visited
             out_tested[i] = tested
             out_overflow[i] = overflow
+
+
+@numba.njit(cache=True, inline="always")
+def _slab_straight(o, inv, lo, hi):
+    """:func:`_slab` for a component that is not clamped (the ray is not parallel to the axis)."""
+    t0 = (lo - o) * inv
+    t1 = (hi - o) * inv
+    return min(t0, t1), max(t0, t1)
+
+
+@numba.njit(nogil=True, cache=True)
+def trace_flat(
+    node_lower, node_upper, node_children, leaf_triangle, origin, direction, t_min_all, t_max_all, enabled, consts,
+    root, stack_size, any_hit, cull, counter, chunk, end, out_distance, out_leaf, out_visited, out_tested,
+    out_overflow,
+):  # fmt: skip
+    """:func:`trace_rays` for a primitive structure of triangles (no instance levels, no hit list, no analytic
+    leaves): the same loop without the instance, hit-list and analytic bookkeeping, and the same results. The
+    instance chain (zero columns) is not written."""
+    stack = np.empty(max(stack_size, 1), np.int32)
+    one, inf, clamp, huge, clamped_huge = consts[0], consts[2], consts[3], consts[4], consts[5]
+    far_scale, parallel = consts[6], consts[7]
+    lf, hf, cf, tf = node_lower.reshape(-1), node_upper.reshape(-1), node_children.reshape(-1), leaf_triangle.reshape(-1)  # fmt: skip
+    while True:
+        begin = _fetch_add(counter, chunk)
+        if begin >= end:
+            break
+        for i in range(begin, min(begin + chunk, end)):
+            if not enabled[i]:
+                out_distance[i] = -inf
+                out_leaf[i] = -1
+                out_visited[i] = 0
+                out_tested[i] = 0
+                out_overflow[i] = False
+                continue
+            t_min = t_min_all[i]
+            distance = t_max_all[i]
+            leaf = -1
+            o0, o1, o2 = origin[i, 0], origin[i, 1], origin[i, 2]
+            i0, i1, i2, kx, ky, kz, sx, sy, sz = _load(o0, o1, o2, direction[i, 0], direction[i, 1], direction[i, 2], one, clamp, huge, clamped_huge)  # fmt: skip
+            # The sheared triangle test reads the vertex components ``kx, ky, kz`` and the origin's.
+            ox, oy, oz = _pick(kx, o0, o1, o2), _pick(ky, o0, o1, o2), _pick(kz, o0, o1, o2)
+            ux, uy, uz = np.uint64(kx), np.uint64(ky), np.uint64(kz)
+            straight = abs(i0) < parallel and abs(i1) < parallel and abs(i2) < parallel
+            node = root
+            depth = 0
+            visited = 0
+            tested = 0
+            overflow = False
+            while True:
+                visited += 1
+                un = np.uint64(node)
+                c0 = cf[un * _U2]
+                c1 = cf[un * _U2 + _U1]
+                b = un * _U6
+                if straight:
+                    n0, f0 = _slab_straight(o0, i0, lf[b], hf[b])
+                    n1, f1 = _slab_straight(o1, i1, lf[b + _U1], hf[b + _U1])
+                    n2, f2 = _slab_straight(o2, i2, lf[b + _U2], hf[b + _U2])
+                    near0 = max(max(max(n0, n1), n2), t_min)
+                    hit0 = near0 <= min(min(min(f0, f1), f2) * far_scale, distance) and lf[b] <= hf[b]
+                    n0, f0 = _slab_straight(o0, i0, lf[b + _U3], hf[b + _U3])
+                    n1, f1 = _slab_straight(o1, i1, lf[b + _U4], hf[b + _U4])
+                    n2, f2 = _slab_straight(o2, i2, lf[b + _U5], hf[b + _U5])
+                    near1 = max(max(max(n0, n1), n2), t_min)
+                    hit1 = near1 <= min(min(min(f0, f1), f2) * far_scale, distance) and lf[b + _U3] <= hf[b + _U3]
+                else:
+                    hit0, near0 = _box(lf[b], lf[b + _U1], lf[b + _U2], hf[b], hf[b + _U1], hf[b + _U2], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
+                    hit1, near1 = _box(lf[b + _U3], lf[b + _U4], lf[b + _U5], hf[b + _U3], hf[b + _U4], hf[b + _U5], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
+                ok0 = False
+                ok1 = False
+                t0 = inf
+                t1 = inf
+                if c0 < 0 and hit0:
+                    tested += 1
+                    ok0, t0 = _triangle_at(tf, np.uint64(-1 - c0) * _U9, ux, uy, uz, ox, oy, oz, sx, sy, sz, t_min, distance, cull, inf)  # fmt: skip
+                if c1 < 0 and hit1:
+                    tested += 1
+                    ok1, t1 = _triangle_at(tf, np.uint64(-1 - c1) * _U9, ux, uy, uz, ox, oy, oz, sx, sy, sz, t_min, distance, cull, inf)  # fmt: skip
+                if ok0 or ok1:
+                    if t1 < t0:
+                        best_t, best_leaf = t1, -1 - c1
+                    else:
+                        best_t, best_leaf = t0, -1 - c0
+                    # Strictly nearer than the current hit; the first hit may lie exactly at t_max (closed interval).
+                    if best_t < distance or (leaf < 0 and best_t <= distance):
+                        distance = best_t
+                        leaf = best_leaf
+                inner0 = hit0 and c0 >= 0
+                inner1 = hit1 and c1 >= 0
+                if inner0 and inner1:
+                    if near0 <= near1:
+                        near, far = c0, c1
+                    else:
+                        near, far = c1, c0
+                    if depth < stack_size:
+                        stack[depth] = far
+                        depth += 1
+                    else:
+                        overflow = True
+                    node = near
+                elif inner0:
+                    node = c0
+                elif inner1:
+                    node = c1
+                elif depth == 0:
+                    break
+                else:
+                    depth -= 1
+                    node = stack[depth]
+                if any_hit and leaf >= 0:
+                    break
+            out_distance[i] = distance
+            out_leaf[i] = leaf
+            out_visited[i] = visited
+            out_tested[i] = tested
+            out_overflow[i] = overflow
+
+
+@numba.njit(cache=True, inline="always")
+def _triangle_at(tf, q, ux, uy, uz, ox, oy, oz, sx, sy, sz, t_min, t_max, cull, inf):
+    """:func:`_triangle` of the triangle at flat offset ``q``, its vertices' components read at the ray's
+    axes ``ux, uy, uz`` (``kx, ky, kz``; ``ox, oy, oz`` the origin's): the same operations on the same values."""
+    az = tf[q + uz] - oz
+    bz = tf[q + _U3 + uz] - oz
+    cz = tf[q + _U6 + uz] - oz
+    ax = _fma(-sx, az, tf[q + ux] - ox)
+    ay = _fma(-sy, az, tf[q + uy] - oy)
+    bx = _fma(-sx, bz, tf[q + _U3 + ux] - ox)
+    by = _fma(-sy, bz, tf[q + _U3 + uy] - oy)
+    cx = _fma(-sx, cz, tf[q + _U6 + ux] - ox)
+    cy = _fma(-sy, cz, tf[q + _U6 + uy] - oy)
+    z0, z1, z2 = sz * az, sz * bz, sz * cz
+    e0 = _rounded_product(cx, by) - _rounded_product(cy, bx)
+    e1 = _rounded_product(ax, cy) - _rounded_product(ay, cx)
+    e2 = _rounded_product(bx, ay) - _rounded_product(by, ax)
+    negative = e0 < 0 or e1 < 0 or e2 < 0
+    positive = e0 > 0 or e1 > 0 or e2 > 0
+    det = e0 + e1 + e2
+    if (negative and positive) or det == 0:
+        return False, inf
+    clockwise = det < 0
+    if (cull > 0 and clockwise) or (cull < 0 and not clockwise):
+        return False, inf
+    t = _fma(e2, z2, _fma(e0, z0, e1 * z1)) / det
+    if t >= t_min and t <= t_max:
+        return True, t
+    return False, inf
