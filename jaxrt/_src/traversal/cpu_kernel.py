@@ -88,6 +88,80 @@ def _fetch_add(typingctx, counter, amount):
     return sig, codegen
 
 
+@intrinsic
+def _box_pair(typingctx, lower, upper, b, o0, o1, o2, i0, i1, i2, t_min, t_max, far_scale):
+    """Both child boxes of a node (six values each at flat offset ``b`` of ``lower`` and ``upper``) with the slab
+    test of :func:`_box` for a ray parallel to no axis: ``(hit0, near0, hit1, near1)``. The two boxes' lower and
+    upper planes of an axis are one vector; every lane computes what the scalar test computes (the same
+    subtraction, product and ``select``-based ``min``/``max`` in the same order)."""
+    sig = types.Tuple((types.boolean, o0, types.boolean, o0))(lower, upper, b, o0, o1, o2, i0, i1, i2, t_min, t_max, far_scale)  # fmt: skip
+
+    def codegen(context, builder, signature, args):
+        ty = args[3].type
+        size = 4 if ty == ir.FloatType() else 8
+        v4 = ir.VectorType(ty, 4)
+        i32 = ir.IntType(32)
+
+        def mask(*lanes):
+            return ir.Constant(ir.VectorType(i32, len(lanes)), [ir.Constant(i32, x) for x in lanes])
+
+        def rows(index):  # lanes 0-3 and 2-5 of the node's six values
+            data = context.make_array(signature.args[index])(context, builder, args[index]).data
+            loads = []
+            for k in (0, 2):
+                at = builder.gep(data, [builder.add(args[2], ir.Constant(args[2].type, k))])
+                loads.append(builder.load(builder.bitcast(at, v4.as_pointer()), align=size))
+            return loads
+
+        (la, lb), (ha, hb) = rows(0), rows(1)
+        # One axis per vector: [lower of box 0, lower of box 1, upper of box 0, upper of box 1].
+        x = builder.shuffle_vector(la, ha, mask(0, 3, 4, 7))
+        y = builder.shuffle_vector(
+            builder.shuffle_vector(la, lb, mask(1, 6, 1, 6)),
+            builder.shuffle_vector(ha, hb, mask(1, 6, 1, 6)),
+            mask(0, 1, 4, 5),
+        )
+        z = builder.shuffle_vector(
+            builder.shuffle_vector(la, lb, mask(2, 7, 2, 7)),
+            builder.shuffle_vector(ha, hb, mask(2, 7, 2, 7)),
+            mask(0, 1, 4, 5),
+        )
+
+        def splat(value, n):
+            vt = ir.VectorType(ty, n)
+            return builder.shuffle_vector(
+                builder.insert_element(ir.Constant(vt, None), value, ir.Constant(i32, 0)),
+                ir.Constant(vt, None),
+                mask(*[0] * n),
+            )
+
+        def select_min(a, c):  # Numba's ``min(a, c)``: ``c if c < a else a``
+            return builder.select(builder.fcmp_ordered("<", c, a), c, a)
+
+        def select_max(a, c):
+            return builder.select(builder.fcmp_ordered(">", c, a), c, a)
+
+        nears, fars = [], []
+        for vector, o, inv in ((x, args[3], args[6]), (y, args[4], args[7]), (z, args[5], args[8])):
+            t = builder.fmul(builder.fsub(vector, splat(o, 4)), splat(inv, 4))
+            t0 = builder.shuffle_vector(t, t, mask(0, 1))  # the lower planes' distances
+            t1 = builder.shuffle_vector(t, t, mask(2, 3))
+            nears.append(select_min(t0, t1))
+            fars.append(select_max(t0, t1))
+        near = select_max(select_max(select_max(nears[0], nears[1]), nears[2]), splat(args[9], 2))
+        far = select_min(
+            builder.fmul(select_min(select_min(fars[0], fars[1]), fars[2]), splat(args[11], 2)), splat(args[10], 2)
+        )
+        xlo = builder.shuffle_vector(x, x, mask(0, 1))
+        xhi = builder.shuffle_vector(x, x, mask(2, 3))
+        hit = builder.and_(builder.fcmp_ordered("<=", near, far), builder.fcmp_ordered("<=", xlo, xhi))
+        lane = lambda v, k: builder.extract_element(v, ir.Constant(i32, k))  # noqa: E731
+        values = [lane(hit, 0), lane(near, 0), lane(hit, 1), lane(near, 1)]
+        return context.make_tuple(builder, signature.return_type, values)
+
+    return sig, codegen
+
+
 @numba.njit(cache=True)
 def _reciprocal(x, clamp, huge, clamped_huge, one):
     """:func:`jaxrt._src.numerics.safe_reciprocal` in the dtype of ``x``: ``huge`` is the dtype's ``1 / clamp``
@@ -540,14 +614,6 @@ def trace_rays(
             out_overflow[i] = overflow
 
 
-@numba.njit(cache=True, inline="always")
-def _slab_straight(o, inv, lo, hi):
-    """:func:`_slab` for a component that is not clamped (the ray is not parallel to the axis)."""
-    t0 = (lo - o) * inv
-    t1 = (hi - o) * inv
-    return min(t0, t1), max(t0, t1)
-
-
 @numba.njit(nogil=True, cache=True)
 def trace_flat(
     node_lower, node_upper, node_children, leaf_triangle, origin, direction, t_min_all, t_max_all, enabled, consts,
@@ -594,16 +660,7 @@ def trace_flat(
                 c1 = cf[un * _U2 + _U1]
                 b = un * _U6
                 if straight:
-                    n0, f0 = _slab_straight(o0, i0, lf[b], hf[b])
-                    n1, f1 = _slab_straight(o1, i1, lf[b + _U1], hf[b + _U1])
-                    n2, f2 = _slab_straight(o2, i2, lf[b + _U2], hf[b + _U2])
-                    near0 = max(max(max(n0, n1), n2), t_min)
-                    hit0 = near0 <= min(min(min(f0, f1), f2) * far_scale, distance) and lf[b] <= hf[b]
-                    n0, f0 = _slab_straight(o0, i0, lf[b + _U3], hf[b + _U3])
-                    n1, f1 = _slab_straight(o1, i1, lf[b + _U4], hf[b + _U4])
-                    n2, f2 = _slab_straight(o2, i2, lf[b + _U5], hf[b + _U5])
-                    near1 = max(max(max(n0, n1), n2), t_min)
-                    hit1 = near1 <= min(min(min(f0, f1), f2) * far_scale, distance) and lf[b + _U3] <= hf[b + _U3]
+                    hit0, near0, hit1, near1 = _box_pair(lf, hf, b, o0, o1, o2, i0, i1, i2, t_min, distance, far_scale)  # fmt: skip
                 else:
                     hit0, near0 = _box(lf[b], lf[b + _U1], lf[b + _U2], hf[b], hf[b + _U1], hf[b + _U2], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
                     hit1, near1 = _box(lf[b + _U3], lf[b + _U4], lf[b + _U5], hf[b + _U3], hf[b + _U4], hf[b + _U5], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
