@@ -1,4 +1,5 @@
-"""CPU traversal: a Numba-compiled stack traversal called through ``jax.pure_callback``, behind the same contract
+"""CPU traversal: a Numba-compiled stack traversal called through a buffer callback (``jax.pure_callback`` where
+the jax version has none), behind the same contract
 as the portable traversal.
 
 :func:`trace_scene` traces a :class:`~jaxrt._src.traversal.scene.TraversalScene` (any number of instance
@@ -37,6 +38,11 @@ import numpy as np
 from jax import lax
 
 from jaxrt._src import numerics
+
+try:  # the callback that hands XLA's buffers over in place (no argument or result copies)
+    from jax.experimental.buffer_callback import buffer_callback as _buffer_callback
+except ImportError:  # pragma: no cover - depends on the jax version
+    _buffer_callback = None
 from jaxrt._src.primitives import box
 from jaxrt._src.traversal import packed
 from jaxrt._src.traversal.scene import TraversalLayout, TraversalResult, TraversalScene
@@ -183,6 +189,14 @@ def _host(params: tuple, wide: bool, hosted: tuple | None, *args: np.ndarray) ->
         words = lambda a: a.view(np.uint32).reshape(*a.shape, 2)  # noqa: E731
         out = tuple(words(a) if i in (0, 6) else a for i, a in enumerate(out))
     return out
+
+
+def _host_into(callback: Any, context: Any, outs: tuple, *args: Any) -> None:
+    """``callback`` as a buffer callback: XLA's argument buffers are read in place and the results written
+    into its output buffers."""
+    del context
+    for out, value in zip(outs, callback(*(np.asarray(a) for a in args)), strict=True):
+        np.asarray(out)[...] = value
 
 
 def _at(address: int, shape: tuple[int, ...], dtype: str) -> np.ndarray:
@@ -417,7 +431,10 @@ def trace_scene(
         )
         args = (jnp.asarray(host, jnp.uint32), anchors, *(a for i, a in enumerate(args) if i not in in_place))
     callback = functools.partial(_host, params, wide, hosted)
-    out = jax.pure_callback(callback, shapes, *args, vmap_method="expand_dims")
+    if _buffer_callback is not None:
+        out = _buffer_callback(functools.partial(_host_into, callback), shapes, vmap_method="expand_dims")(*args)
+    else:  # pragma: no cover - depends on the jax version
+        out = jax.pure_callback(callback, shapes, *args, vmap_method="expand_dims")
     floats = lambda a: lax.bitcast_convert_type(a, dtype) if wide else a  # noqa: E731
     hits = None
     if hit_list:
