@@ -181,7 +181,7 @@ def _pick(k, a0, a1, a2):
     return a0 if k == 0 else (a1 if k == 1 else a2)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")  # inlined where it is called: once per ray (and per instance level)
 def _load(o0, o1, o2, d0, d1, d2, one, clamp, huge, clamped_huge):
     """The loaded ray's constants: reciprocal direction, axes and shear (Woop et al. section 3)."""
     i0 = _reciprocal(d0, clamp, huge, clamped_huge, one)
