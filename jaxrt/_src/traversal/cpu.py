@@ -1,6 +1,5 @@
 """CPU traversal: a Numba-compiled stack traversal called through a buffer callback (``jax.pure_callback`` where
-the jax version has none), behind the same contract
-as the portable traversal.
+the jax version has none), behind the same contract as the portable traversal.
 
 :func:`trace_scene` traces a :class:`~jaxrt._src.traversal.scene.TraversalScene` (any number of instance
 levels) and returns the :class:`~jaxrt._src.traversal.scene.TraversalResult` of the portable traversal: the same
