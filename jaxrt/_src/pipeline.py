@@ -290,7 +290,7 @@ def _intersect_chunks(intersector: Any, rays: Ray, structure: Any, chunk: int, h
 def intersect(intersector: Any, rays: Ray, structure: Any) -> IntersectionResult:
     """Rays of any batch shape, padded to a power-of-two bucket (or chunks of :data:`INTERSECT_CHUNK`)."""
     shape = rays.shape
-    flat = rays.reshape(-1)
+    flat = rays if len(shape) == 1 else rays.reshape(-1)  # a flat batch as it is (no eager reshape per field)
     n = flat.origin.shape[0]
     chunk = INTERSECT_CHUNK
     padded = power_of_two_bucket(n) if n <= chunk else -(-n // chunk) * chunk

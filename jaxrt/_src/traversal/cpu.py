@@ -1,5 +1,5 @@
-"""CPU traversal: a Numba-compiled stack traversal called through ``jax.pure_callback``, behind the same contract
-as the portable traversal.
+"""CPU traversal: a Numba-compiled stack traversal called through a buffer callback (``jax.pure_callback`` where
+the jax version has none), behind the same contract as the portable traversal.
 
 :func:`trace_scene` traces a :class:`~jaxrt._src.traversal.scene.TraversalScene` (any number of instance
 levels) and returns the :class:`~jaxrt._src.traversal.scene.TraversalResult` of the portable traversal: the same
@@ -37,6 +37,11 @@ import numpy as np
 from jax import lax
 
 from jaxrt._src import numerics
+
+try:  # the callback that hands XLA's buffers over in place (no argument or result copies)
+    from jax.experimental.buffer_callback import buffer_callback as _buffer_callback
+except ImportError:  # pragma: no cover - depends on the jax version
+    _buffer_callback = None
 from jaxrt._src.primitives import box
 from jaxrt._src.traversal import packed
 from jaxrt._src.traversal.scene import TraversalLayout, TraversalResult, TraversalScene
@@ -139,7 +144,14 @@ def _run(params: tuple, arrays: list[np.ndarray]) -> tuple[np.ndarray, ...]:
     )
     consts, flags = constants(dtype), np.asarray(params, np.int64)
     counter = np.zeros(1, np.int64)
-    run = functools.partial(cpu_kernel.trace_rays, *arrays, consts, flags, counter, CHUNK, n, *out, *hits)
+    if levels == 0 and not hit_list and not params[9]:  # triangles only, no instances: the lean loop
+        rays = arrays[_RAYS : _RAYS + 5]
+        run = functools.partial(
+            cpu_kernel.trace_flat, *arrays[:4], *rays, consts, params[0], params[3], bool(params[4]), params[5],
+            counter, CHUNK, n, out[0], out[1], *out[3:],
+        )  # fmt: skip
+    else:
+        run = functools.partial(cpu_kernel.trace_rays, *arrays, consts, flags, counter, CHUNK, n, *out, *hits)
     workers = min(threads(), -(-n // MIN_TASK))
     # The kernel releases the GIL; each thread claims chunks of rays from the shared counter until none is
     # left, so uneven rays balance without a task per chunk. This thread is one of the workers.
@@ -176,6 +188,14 @@ def _host(params: tuple, wide: bool, hosted: tuple | None, *args: np.ndarray) ->
         words = lambda a: a.view(np.uint32).reshape(*a.shape, 2)  # noqa: E731
         out = tuple(words(a) if i in (0, 6) else a for i, a in enumerate(out))
     return out
+
+
+def _host_into(callback: Any, context: Any, outs: tuple, *args: Any) -> None:
+    """``callback`` as a buffer callback: XLA's argument buffers are read in place and the results written
+    into its output buffers."""
+    del context
+    for out, value in zip(outs, callback(*(np.asarray(a) for a in args)), strict=True):
+        np.asarray(out)[...] = value
 
 
 def _at(address: int, shape: tuple[int, ...], dtype: str) -> np.ndarray:
@@ -410,7 +430,10 @@ def trace_scene(
         )
         args = (jnp.asarray(host, jnp.uint32), anchors, *(a for i, a in enumerate(args) if i not in in_place))
     callback = functools.partial(_host, params, wide, hosted)
-    out = jax.pure_callback(callback, shapes, *args, vmap_method="expand_dims")
+    if _buffer_callback is not None:
+        out = _buffer_callback(functools.partial(_host_into, callback), shapes, vmap_method="expand_dims")(*args)
+    else:  # pragma: no cover - depends on the jax version
+        out = jax.pure_callback(callback, shapes, *args, vmap_method="expand_dims")
     floats = lambda a: lax.bitcast_convert_type(a, dtype) if wide else a  # noqa: E731
     hits = None
     if hit_list:

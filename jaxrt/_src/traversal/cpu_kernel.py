@@ -7,6 +7,9 @@ Each ray runs the loop of :mod:`jaxrt._src.traversal.step` sequentially: one int
 child boxes with the conservative slab test (Ize 2013), the primitives of leaf children tested on sight with the
 watertight test (Woop, Benthin, Wald 2013), the nearer inner child entered and the farther one pushed, and the
 instance transition (ray moved by the instance's world-to-object rows, facing multiplied along the chain).
+:func:`trace_rays` is the general loop; :func:`trace_flat` the same loop for a primitive structure of triangles
+with a nearest or any-hit query (no instance, hit-list or analytic bookkeeping per visit), which tests both
+child boxes of a node in one vector slab test (:func:`_box_pair`) for rays parallel to no axis.
 
 Same decisions to the bit: every value the portable path compares is computed here with the same float
 operations, in the same order and precision (the geometry's dtype). Two details make that hold:
@@ -28,7 +31,7 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
-__all__ = ["trace_rays"]
+__all__ = ["trace_flat", "trace_rays"]
 
 #: Unsigned offsets: rows are read from flat views at unsigned indices (no negative-index wraparound code).
 _U1 = np.uint64(1)
@@ -88,6 +91,80 @@ def _fetch_add(typingctx, counter, amount):
     return sig, codegen
 
 
+@intrinsic
+def _box_pair(typingctx, lower, upper, b, o0, o1, o2, i0, i1, i2, t_min, t_max, far_scale):
+    """Both child boxes of a node (six values each at flat offset ``b`` of ``lower`` and ``upper``) with the slab
+    test of :func:`_box` for a ray parallel to no axis: ``(hit0, near0, hit1, near1)``. The two boxes' lower and
+    upper planes of an axis are one vector; every lane computes what the scalar test computes (the same
+    subtraction, product and ``select``-based ``min``/``max`` in the same order)."""
+    sig = types.Tuple((types.boolean, o0, types.boolean, o0))(lower, upper, b, o0, o1, o2, i0, i1, i2, t_min, t_max, far_scale)  # fmt: skip
+
+    def codegen(context, builder, signature, args):
+        ty = args[3].type
+        size = 4 if ty == ir.FloatType() else 8
+        v4 = ir.VectorType(ty, 4)
+        i32 = ir.IntType(32)
+
+        def mask(*lanes):
+            return ir.Constant(ir.VectorType(i32, len(lanes)), [ir.Constant(i32, x) for x in lanes])
+
+        def rows(index):  # lanes 0-3 and 2-5 of the node's six values
+            data = context.make_array(signature.args[index])(context, builder, args[index]).data
+            loads = []
+            for k in (0, 2):
+                at = builder.gep(data, [builder.add(args[2], ir.Constant(args[2].type, k))])
+                loads.append(builder.load(builder.bitcast(at, v4.as_pointer()), align=size))
+            return loads
+
+        (la, lb), (ha, hb) = rows(0), rows(1)
+        # One axis per vector: [lower of box 0, lower of box 1, upper of box 0, upper of box 1].
+        x = builder.shuffle_vector(la, ha, mask(0, 3, 4, 7))
+        y = builder.shuffle_vector(
+            builder.shuffle_vector(la, lb, mask(1, 6, 1, 6)),
+            builder.shuffle_vector(ha, hb, mask(1, 6, 1, 6)),
+            mask(0, 1, 4, 5),
+        )
+        z = builder.shuffle_vector(
+            builder.shuffle_vector(la, lb, mask(2, 7, 2, 7)),
+            builder.shuffle_vector(ha, hb, mask(2, 7, 2, 7)),
+            mask(0, 1, 4, 5),
+        )
+
+        def splat(value, n):
+            vt = ir.VectorType(ty, n)
+            return builder.shuffle_vector(
+                builder.insert_element(ir.Constant(vt, None), value, ir.Constant(i32, 0)),
+                ir.Constant(vt, None),
+                mask(*[0] * n),
+            )
+
+        def select_min(a, c):  # Numba's ``min(a, c)``: ``c if c < a else a``
+            return builder.select(builder.fcmp_ordered("<", c, a), c, a)
+
+        def select_max(a, c):
+            return builder.select(builder.fcmp_ordered(">", c, a), c, a)
+
+        nears, fars = [], []
+        for vector, o, inv in ((x, args[3], args[6]), (y, args[4], args[7]), (z, args[5], args[8])):
+            t = builder.fmul(builder.fsub(vector, splat(o, 4)), splat(inv, 4))
+            t0 = builder.shuffle_vector(t, t, mask(0, 1))  # the lower planes' distances
+            t1 = builder.shuffle_vector(t, t, mask(2, 3))
+            nears.append(select_min(t0, t1))
+            fars.append(select_max(t0, t1))
+        near = select_max(select_max(select_max(nears[0], nears[1]), nears[2]), splat(args[9], 2))
+        far = select_min(
+            builder.fmul(select_min(select_min(fars[0], fars[1]), fars[2]), splat(args[11], 2)), splat(args[10], 2)
+        )
+        xlo = builder.shuffle_vector(x, x, mask(0, 1))
+        xhi = builder.shuffle_vector(x, x, mask(2, 3))
+        hit = builder.and_(builder.fcmp_ordered("<=", near, far), builder.fcmp_ordered("<=", xlo, xhi))
+        lane = lambda v, k: builder.extract_element(v, ir.Constant(i32, k))  # noqa: E731
+        values = [lane(hit, 0), lane(near, 0), lane(hit, 1), lane(near, 1)]
+        return context.make_tuple(builder, signature.return_type, values)
+
+    return sig, codegen
+
+
 @numba.njit(cache=True)
 def _reciprocal(x, clamp, huge, clamped_huge, one):
     """:func:`jaxrt._src.numerics.safe_reciprocal` in the dtype of ``x``: ``huge`` is the dtype's ``1 / clamp``
@@ -107,7 +184,7 @@ def _pick(k, a0, a1, a2):
     return a0 if k == 0 else (a1 if k == 1 else a2)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")  # inlined where it is called: once per ray (and per instance level)
 def _load(o0, o1, o2, d0, d1, d2, one, clamp, huge, clamped_huge):
     """The loaded ray's constants: reciprocal direction, axes and shear (Woop et al. section 3)."""
     i0 = _reciprocal(d0, clamp, huge, clamped_huge, one)
@@ -538,3 +615,134 @@ def trace_rays(
             out_visited[i] = visited
             out_tested[i] = tested
             out_overflow[i] = overflow
+
+
+@numba.njit(nogil=True, cache=True)
+def trace_flat(
+    node_lower, node_upper, node_children, leaf_triangle, origin, direction, t_min_all, t_max_all, enabled, consts,
+    root, stack_size, any_hit, cull, counter, chunk, end, out_distance, out_leaf, out_visited, out_tested,
+    out_overflow,
+):  # fmt: skip
+    """:func:`trace_rays` for a primitive structure of triangles (no instance levels, no hit list, no analytic
+    leaves): the same loop without the instance, hit-list and analytic bookkeeping, and the same results. The
+    instance chain (zero columns) is not written."""
+    stack = np.empty(max(stack_size, 1), np.int32)
+    one, inf, clamp, huge, clamped_huge = consts[0], consts[2], consts[3], consts[4], consts[5]
+    far_scale, parallel = consts[6], consts[7]
+    lf, hf, cf, tf = node_lower.reshape(-1), node_upper.reshape(-1), node_children.reshape(-1), leaf_triangle.reshape(-1)  # fmt: skip
+    while True:
+        begin = _fetch_add(counter, chunk)
+        if begin >= end:
+            break
+        for i in range(begin, min(begin + chunk, end)):
+            if not enabled[i]:
+                out_distance[i] = -inf
+                out_leaf[i] = -1
+                out_visited[i] = 0
+                out_tested[i] = 0
+                out_overflow[i] = False
+                continue
+            t_min = t_min_all[i]
+            distance = t_max_all[i]
+            leaf = -1
+            o0, o1, o2 = origin[i, 0], origin[i, 1], origin[i, 2]
+            i0, i1, i2, kx, ky, kz, sx, sy, sz = _load(o0, o1, o2, direction[i, 0], direction[i, 1], direction[i, 2], one, clamp, huge, clamped_huge)  # fmt: skip
+            # The sheared triangle test reads the vertex components ``kx, ky, kz`` and the origin's.
+            ox, oy, oz = _pick(kx, o0, o1, o2), _pick(ky, o0, o1, o2), _pick(kz, o0, o1, o2)
+            ux, uy, uz = np.uint64(kx), np.uint64(ky), np.uint64(kz)
+            straight = abs(i0) < parallel and abs(i1) < parallel and abs(i2) < parallel
+            node = root
+            depth = 0
+            visited = 0
+            tested = 0
+            overflow = False
+            while True:
+                visited += 1
+                un = np.uint64(node)
+                c0 = cf[un * _U2]
+                c1 = cf[un * _U2 + _U1]
+                b = un * _U6
+                if straight:
+                    hit0, near0, hit1, near1 = _box_pair(lf, hf, b, o0, o1, o2, i0, i1, i2, t_min, distance, far_scale)  # fmt: skip
+                else:
+                    hit0, near0 = _box(lf[b], lf[b + _U1], lf[b + _U2], hf[b], hf[b + _U1], hf[b + _U2], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
+                    hit1, near1 = _box(lf[b + _U3], lf[b + _U4], lf[b + _U5], hf[b + _U3], hf[b + _U4], hf[b + _U5], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
+                ok0 = False
+                ok1 = False
+                t0 = inf
+                t1 = inf
+                if c0 < 0 and hit0:
+                    tested += 1
+                    ok0, t0 = _triangle_at(tf, np.uint64(-1 - c0) * _U9, ux, uy, uz, ox, oy, oz, sx, sy, sz, t_min, distance, cull, inf)  # fmt: skip
+                if c1 < 0 and hit1:
+                    tested += 1
+                    ok1, t1 = _triangle_at(tf, np.uint64(-1 - c1) * _U9, ux, uy, uz, ox, oy, oz, sx, sy, sz, t_min, distance, cull, inf)  # fmt: skip
+                if ok0 or ok1:
+                    if t1 < t0:
+                        best_t, best_leaf = t1, -1 - c1
+                    else:
+                        best_t, best_leaf = t0, -1 - c0
+                    # Strictly nearer than the current hit; the first hit may lie exactly at t_max (closed interval).
+                    if best_t < distance or (leaf < 0 and best_t <= distance):
+                        distance = best_t
+                        leaf = best_leaf
+                inner0 = hit0 and c0 >= 0
+                inner1 = hit1 and c1 >= 0
+                if inner0 and inner1:
+                    if near0 <= near1:
+                        near, far = c0, c1
+                    else:
+                        near, far = c1, c0
+                    if depth < stack_size:
+                        stack[depth] = far
+                        depth += 1
+                    else:
+                        overflow = True
+                    node = near
+                elif inner0:
+                    node = c0
+                elif inner1:
+                    node = c1
+                elif depth == 0:
+                    break
+                else:
+                    depth -= 1
+                    node = stack[depth]
+                if any_hit and leaf >= 0:
+                    break
+            out_distance[i] = distance
+            out_leaf[i] = leaf
+            out_visited[i] = visited
+            out_tested[i] = tested
+            out_overflow[i] = overflow
+
+
+@numba.njit(cache=True, inline="always")
+def _triangle_at(tf, q, ux, uy, uz, ox, oy, oz, sx, sy, sz, t_min, t_max, cull, inf):
+    """:func:`_triangle` of the triangle at flat offset ``q``, its vertices' components read at the ray's
+    axes ``ux, uy, uz`` (``kx, ky, kz``; ``ox, oy, oz`` the origin's): the same operations on the same values."""
+    az = tf[q + uz] - oz
+    bz = tf[q + _U3 + uz] - oz
+    cz = tf[q + _U6 + uz] - oz
+    ax = _fma(-sx, az, tf[q + ux] - ox)
+    ay = _fma(-sy, az, tf[q + uy] - oy)
+    bx = _fma(-sx, bz, tf[q + _U3 + ux] - ox)
+    by = _fma(-sy, bz, tf[q + _U3 + uy] - oy)
+    cx = _fma(-sx, cz, tf[q + _U6 + ux] - ox)
+    cy = _fma(-sy, cz, tf[q + _U6 + uy] - oy)
+    z0, z1, z2 = sz * az, sz * bz, sz * cz
+    e0 = _rounded_product(cx, by) - _rounded_product(cy, bx)
+    e1 = _rounded_product(ax, cy) - _rounded_product(ay, cx)
+    e2 = _rounded_product(bx, ay) - _rounded_product(by, ax)
+    negative = e0 < 0 or e1 < 0 or e2 < 0
+    positive = e0 > 0 or e1 > 0 or e2 > 0
+    det = e0 + e1 + e2
+    if (negative and positive) or det == 0:
+        return False, inf
+    clockwise = det < 0
+    if (cull > 0 and clockwise) or (cull < 0 and not clockwise):
+        return False, inf
+    t = _fma(e2, z2, _fma(e0, z0, e1 * z1)) / det
+    if t >= t_min and t <= t_max:
+        return True, t
+    return False, inf
