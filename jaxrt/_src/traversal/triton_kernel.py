@@ -35,6 +35,19 @@ step's usual ending (nearer leaf kept, near child entered, far one pushed). A pe
 distance bound, stack and state do not change meanwhile, so each ray makes the same decisions in the same
 order, and its result and counters are bit for bit those of the on-sight kernel.
 
+Lane refill (compile-time constant ``REFILL``; off generates the block-by-block code): without it a block's
+lanes idle from the end of their own ray to the end of the block's slowest one. With it each lane carries its
+own ray index: at the top of a loop step, where some lane is done (a warp-uniform branch), the done lanes store
+their results and take the program's next rays, in lane order by a prefix sum over them; the program's queue is
+its own blocks ``pid, pid + n_programs, ...`` ray by ray. A taken ray that is disabled is finished on the spot (the
+result the block loop would store for it) and its lane takes another. A new ray starts with the state a block
+start gives it (root or its own root, empty stack, no leaf, zero counters, an empty hit list, its curve frame,
+no pending curve test), and its traversal is the same sequence of steps whichever lane runs it and whenever:
+every result field and counter is bit for bit the block-by-block kernel's. The loop ends when no lane is busy
+and the queue is empty. Primitive structures only (``LEVELS = 0``), without keyframe motion or analytic leaves
+(with or without curves, ``CURVE_BATCH`` and hit lists); :mod:`jaxrt._src.traversal.gpu` compiles other calls
+without it.
+
 Instances (``LEVELS > 0``, a compile-time constant: with 0 the instance code is not generated): the kernel
 makes the decisions of the portable ``step.visit`` and ``step.transition``. An instance leaf is ordered and
 pushed like an inner node when its mask meets the ray's; a stack entry keeps its level in its low ``SHIFT``
@@ -974,6 +987,10 @@ def trace_kernel(
     ``PIECES`` to ``FLAT`` are :func:`~jaxrt._src.traversal.triton_curves.curve_leaf`'s). ``CURVE_BATCH > 0``
     defers curve tests until that many lanes wait for one (or no other lane can step; see the module
     docstring): the same results, fewer warp-wide curve tests. 0 tests them on sight (binary nodes, ``BRANCH``).
+
+    Lane refill (``REFILL = False`` compiles none of this; see the module docstring): a lane whose ray is done
+    stores its result and takes the program's next ray at once; the same results bit for bit. ``LEVELS = 0``,
+    without keyframe motion or analytic leaves (the caller's choice: the kernel does not check).
     """
     pid = tl.program_id(0)
     lane = tl.arange(0, LANES)
