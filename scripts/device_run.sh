@@ -10,8 +10,6 @@
 #   bash scripts/device_run.sh kerneltests  the analytic, multi-hit and curve kernel tests on the GPU
 #   bash scripts/device_run.sh curvebatch  curve bench with deferred curve tests off and at two thresholds (each row
 #                                          compared bit for bit with the first), then a few curve kernel tests
-#   bash scripts/device_run.sh refill   curve bench (ponytail, bear) and triangle bench (sphere, soup) with lane refill
-#                                       off and on (and at fewer programs), rows compared bit for bit; refill tests
 set -uo pipefail
 part=${1:-core}
 out=${OUT:-/tmp/out}
@@ -63,14 +61,6 @@ case $part in
       --tubes 6,2 --no-generic --json "$out/curvebatch.json"
     step curvebatch_tests 180 python3 -m pytest tests/test_gpu_curves.py -q -p no:cacheprovider -rs --durations=5 \
       -k "not interpreter and (test_every_basis_and_cap and bezier-4-sphere or kinked)"
-    ;;
-  refill)
-    step refill_curves 300 python3 -m jaxrt.bench.curves --scenes ponytail bear --settings 8,3 --tubes 6,2 \
-      --no-generic --refill --refill-programs 1024 512 --json "$out/refill_curves.json"
-    step refill_triangles 130 python3 -m jaxrt.bench.gpu --scenes sphere,soup --quality fast --portable-rays 0 \
-      --repeats 5 --refill --refill-programs 1024 --json "$out/refill_triangles.json"
-    step refill_tests 90 python3 -m pytest tests/test_gpu_refill.py tests/test_gpu_curves.py -q -p no:cacheprovider \
-      -rs --durations=5 -k "not interpreter and (refill or batches_change_no_decision)"
     ;;
 esac
 for f in "$out"/*.log; do echo "##### $f"; tail -n 40 "$f"; done

@@ -18,7 +18,6 @@ Two parts:
 from __future__ import annotations
 
 import contextlib
-import itertools
 import time
 from collections.abc import Sequence
 from typing import NamedTuple
@@ -649,15 +648,13 @@ def bench_scene(scene: HairScene, config: dict, *, seed: int = 0, log=print) -> 
     build = jax.jit(rt.build_primitive_structure)
     structure = build(geometry)
     batches = config.get("curve_batch") or (None,)
-    refills = _refill_rows(config)
     for pieces, iterations in config["settings"]:
         options = rt.CurveOptions(pieces=pieces, iterations=iterations)
         name = "chord" if iterations == 0 else "newton"
         first = None
-        for batch, (refill, suffix_refill) in itertools.product(batches, refills):
-            suffix = ("" if batch is None else f", batch {batch}") + suffix_refill
-            changes = ({} if batch is None else dict(curve_batch=batch)) | refill
-            with _kernel_options(changes):
+        for batch in batches:
+            suffix = "" if batch is None else f", batch {batch}"
+            with _kernel_curve_batch(batch):
                 _, full = measure(
                     f"curve {name}",
                     f"{pieces} pieces, {iterations} it{suffix}",
@@ -679,32 +676,15 @@ def bench_scene(scene: HairScene, config: dict, *, seed: int = 0, log=print) -> 
     for sides, rings in config["tubes"]:
         triangles = rt.TriangleGeometry(tessellate(geometry, sides, rings).reshape(-1, 3))
         tube = rt.build_primitive_structure(triangles)
-        first = None
-        for refill, suffix in refills:
-            with _kernel_options(refill):
-                _, full = measure("triangle tube", f"{sides} sides x {rings} rings{suffix}", tube, rt.Intersector(),
-                                  geometry.primitive_count, same_as=first)  # fmt: skip
-            first = full if first is None else first
+        measure("triangle tube", f"{sides} sides x {rings} rings", tube, rt.Intersector(), geometry.primitive_count)
         del tube
     return out
 
 
-def _refill_rows(config: dict) -> list[tuple[dict, str]]:
-    """``(kernel option changes, row suffix)`` of the lane refill rows: the default only; refill off and on;
-    and on with each ``refill_programs`` asked for."""
-    rows = [({}, "")]
-    if config.get("refill") or config.get("refill_programs"):
-        rows = [(dict(refill=False), ", refill off"), (dict(refill=True), ", refill")]
-    for programs in config.get("refill_programs") or ():
-        rows.append((dict(refill=True, refill_programs=programs), f", refill {programs} pr."))
-    return rows
-
-
 @contextlib.contextmanager
-def _kernel_options(changes: dict):
-    """Trace with the GPU kernel's default options changed by ``changes`` (``{}``: the default), compiled
-    afresh."""
-    if not changes:
+def _kernel_curve_batch(batch: int | None):
+    """Trace with the GPU kernel's ``curve_batch`` set to ``batch`` (``None``: the default), compiled afresh."""
+    if batch is None:
         yield
         return
     import dataclasses
@@ -714,7 +694,7 @@ def _kernel_options(changes: dict):
     from jaxrt._src.traversal import gpu
 
     default = gpu.DEFAULT_OPTIONS
-    gpu.DEFAULT_OPTIONS = dataclasses.replace(default, **changes)
+    gpu.DEFAULT_OPTIONS = dataclasses.replace(default, curve_batch=batch)
     jax.clear_caches()  # the intersect functions are compiled per intersector, not per kernel option
     try:
         yield
@@ -783,18 +763,6 @@ def main(argv: Sequence[str] | None = None) -> dict:
         help="a kernel row per setting for each GPU kernel curve_batch N (0: curve tests on sight); each row's "
         "distances are compared bit for bit with the first's",
     )
-    parser.add_argument(
-        "--refill",
-        action="store_true",
-        help="kernel and tube rows with the GPU kernel's lane refill off and on (compared bit for bit)",
-    )
-    parser.add_argument(
-        "--refill-programs",
-        nargs="+",
-        type=int,
-        metavar="N",
-        help="also rows with refill on and at most N programs (implies --refill)",
-    )
     parser.add_argument("--no-generic", action="store_true", help="skip the generic-code row")
     args = parser.parse_args(argv)
     config = dict(_QUICK if args.quick else _DEFAULTS)
@@ -805,8 +773,6 @@ def main(argv: Sequence[str] | None = None) -> dict:
     config["settings"] = pairs(args.settings) if args.settings else CURVE_SETTINGS
     config["tubes"] = pairs(args.tubes) if args.tubes else TUBE_RATES
     config["curve_batch"] = tuple(args.curve_batch or ())
-    config["refill"] = bool(args.refill or args.refill_programs)
-    config["refill_programs"] = tuple(args.refill_programs or ())
     config["generic"] = not args.no_generic
     data_dir = args.data or default_data_dir()
     names = args.scenes or (["ponytail"] if args.quick else ["ponytail", "bear"])

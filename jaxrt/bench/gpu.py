@@ -216,8 +216,7 @@ def _bench_kernel(structure, rays: dict[str, jax.Array], any_hit: bool, options:
     out = jax.block_until_ready(launch(nodes, triangles, instances, block))
     seconds = _median_s(lambda: launch(nodes, triangles, instances, block), repeats)
     pipelined = _pipelined_s(lambda: launch(nodes, triangles, instances, block), 20)
-    fields = b"".join(np.asarray(a)[:n].tobytes() for a in out[:5])  # distance, leaf and counters, for bit checks
-    return seconds, pipelined, np.asarray(out[1])[:n], np.asarray(out[2])[:n], fields
+    return seconds, pipelined, np.asarray(out[1])[:n], np.asarray(out[2])[:n]
 
 
 def _warp_tracer(scene, constructor: str):
@@ -297,9 +296,9 @@ def _bench_warp(scene, batches: dict[str, RayBatch], repeats: int) -> dict[str, 
     return out
 
 
-def _bench_query(structures: dict, batch: RayBatch, any_hit: bool, portable_rays: int, repeats: int, variants: dict):
-    """The jaxrt measurements of one ray set: portable path, kernel on every tree (``variants``, label to
-    options, on the first; each compared bit for bit with the default), trace and intersect on the first tree."""
+def _bench_query(structures: dict, batch: RayBatch, any_hit: bool, portable_rays: int, repeats: int, variants: bool):
+    """The jaxrt measurements of one ray set: portable path, kernel on every tree (variants on the first),
+    trace and intersect on the first tree."""
     n_rays = len(batch)
     first = next(iter(structures))
     structure = structures[first]
@@ -318,23 +317,16 @@ def _bench_query(structures: dict, batch: RayBatch, any_hit: bool, portable_rays
         return q
     rays = _device_rays(batch)
     for quality, tree in structures.items():
-        runs = {"default": gpu.DEFAULT_OPTIONS, **(variants if quality == first else {})}
+        runs = VARIANTS.items() if variants and quality == first else [("default", gpu.DEFAULT_OPTIONS)]
         q["kernel"][quality] = {}
-        default_fields = None
-        for label, options in runs.items():
-            s, p, leaf, visited, fields = _bench_kernel(tree, rays, any_hit, options, repeats)
+        for label, options in runs:
+            s, p, leaf, visited = _bench_kernel(tree, rays, any_hit, options, repeats)
             k = {
                 "mrays_s": n_rays / s / 1e6,
                 "pipelined_mrays_s": n_rays / p / 1e6,
                 "visited_mean": float(visited.mean()),
                 "visited_max": int(visited.max()),
             }
-            if default_fields is None:
-                default_fields = fields
-            else:
-                k["bitwise_equal_default"] = fields == default_fields
-                same = "bitwise equal to the default" if fields == default_fields else "DIFFERS from the default"
-                _log(f"  kernel[{quality}] {label}: {k['pipelined_mrays_s']:.0f} Mrays/s pipelined, {same}")
             if reference_primitive is not None:
                 mine = _primitive_of_leaf(tree, leaf[: len(reference_primitive)])
                 k["mismatch_vs_portable"] = _agreement(mine, reference_primitive)
@@ -407,7 +399,7 @@ def bench_scene(
     n_rays: int,
     portable_rays: int,
     repeats: int,
-    variants: dict,
+    variants: bool,
     peers: bool,
     qualities: tuple[str, ...] = QUALITIES,
     mesh_dir: str | None = None,
@@ -570,7 +562,6 @@ def format_table(results: dict[str, Any]) -> str:
                         if "mismatch_vs_portable" in r
                         else ""
                     )
-                    + ("" if r.get("bitwise_equal_default", True) else " DIFFERS")
                     for r in runs.values()
                 ]
                 variant_rows.append(f"| {name} | {query} | " + " | ".join(cells) + " |")
@@ -604,24 +595,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "--quality", default=",".join(QUALITIES), help="build qualities to trace, first is the reference"
     )
     parser.add_argument("--variants", action="store_true", help="also time kernel code-generation variants")
-    parser.add_argument(
-        "--refill", action="store_true", help="also time the kernel with lane refill off and on (bit for bit checked)"
-    )
-    parser.add_argument(
-        "--refill-programs", default="", help="also refill with at most these many programs (comma-separated)"
-    )
     parser.add_argument("--build-sizes", default="", help="extra build-only sizes, e.g. 10000000 (comma-separated)")
     parser.add_argument("--build-scenes", default="sphere,soup", help="procedural scenes of --build-sizes")
     parser.add_argument("--huge-rays", type=int, default=0, help="also trace this many rays in one intersect call")
     args = parser.parse_args(argv)
     qualities = tuple(args.quality.split(","))
-    variants = {k: v for k, v in VARIANTS.items() if k != "default"} if args.variants else {}
-    programs = [int(p) for p in filter(None, args.refill_programs.split(","))]
-    if args.refill or programs:  # the other setting than the default's
-        refill = not gpu.DEFAULT_OPTIONS.refill
-        variants["refill" if refill else "refill-off"] = dataclasses.replace(gpu.DEFAULT_OPTIONS, refill=refill)
-    for count in programs:
-        variants[f"refill-{count}"] = dataclasses.replace(gpu.DEFAULT_OPTIONS, refill=True, refill_programs=count)
     results: dict[str, Any] = {
         "device": str(jax.devices()[0]),
         "jax": jax.__version__,
@@ -647,7 +625,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             args.rays,
             args.portable_rays,
             args.repeats,
-            variants,
+            args.variants,
             args.peers,
             qualities,
             args.meshes,

@@ -95,11 +95,6 @@ RAY_ARGS = 8
 #: Default :attr:`KernelOptions.curve_batch`; the environment variable ``JAXRT_CURVE_BATCH`` (read at import)
 #: overrides it, so that benches can compare thresholds without editing code.
 CURVE_BATCH = int(os.environ.get("JAXRT_CURVE_BATCH", "16"))
-#: Default :attr:`KernelOptions.refill`; the environment variable ``JAXRT_REFILL`` (``1``: on, read at import)
-#: overrides it.
-REFILL = os.environ.get("JAXRT_REFILL", "0") not in ("", "0")
-#: Default :attr:`KernelOptions.refill_programs` (environment variable ``JAXRT_REFILL_PROGRAMS``).
-REFILL_PROGRAMS = int(os.environ.get("JAXRT_REFILL_PROGRAMS", "4096"))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -123,12 +118,6 @@ class KernelOptions:
         until this many rays of the warp wait (or none other can step), so that one warp-wide curve test serves
         them all; the other rays keep taking steps meanwhile. Each ray makes the same decisions either way.
         0 tests curves on sight (each step that needs one runs the whole test for the warp).
-      refill: a lane whose ray is finished stores its result and takes the program's next ray at once, instead
-        of waiting until every ray of its block is finished. Each ray makes the same decisions either way (the
-        results are bit for bit the same). Binary nodes of a primitive structure without keyframe motion or
-        analytic leaves (with or without curves and hit lists); other calls trace block by block.
-      refill_programs: with ``refill``, most programs per launch (each takes its share of the blocks, so fewer
-        programs give each lane more rays to refill from; enough should run to fill the GPU).
 
     The defaults were the fastest on an H200 (``python -m jaxrt.bench.gpu --variants``).
     """
@@ -140,8 +129,6 @@ class KernelOptions:
     node_width: int = 2
     leaf_size: int = 4
     curve_batch: int = CURVE_BATCH
-    refill: bool = REFILL
-    refill_programs: int = REFILL_PROGRAMS
 
     def __post_init__(self):
         if self.node_width not in (2, 4):
@@ -150,8 +137,6 @@ class KernelOptions:
             raise ValueError(f"KernelOptions: leaf_size must be in 1..{packed.MAX_LEAF_SIZE}, got {self.leaf_size}")
         if not 0 <= self.curve_batch <= 255:
             raise ValueError(f"KernelOptions: curve_batch must be in 0..255, got {self.curve_batch}")
-        if self.refill_programs < 1:
-            raise ValueError(f"KernelOptions: refill_programs must be positive, got {self.refill_programs}")
 
 
 DEFAULT_OPTIONS = KernelOptions()
@@ -301,11 +286,6 @@ def kernel_call(
     )
     batched = config.curves and levels == 0 and options.leaf_branch
     params.update(CURVE_BATCH=min(options.curve_batch, lanes) if batched else 0)
-    # Lane refill: a primitive structure without motion or analytic leaves only (else block by block).
-    refill = bool(options.refill and levels == 0 and not config.motion and not config.analytic)
-    params.update(REFILL=refill)
-    if refill:
-        programs = max(1, min(programs, options.refill_programs))
     k = config.max_hits
     extra = (
         jax.ShapeDtypeStruct((max(1, levels * size),), jnp.int32),  # instance chain, (levels, size)

@@ -35,19 +35,6 @@ step's usual ending (nearer leaf kept, near child entered, far one pushed). A pe
 distance bound, stack and state do not change meanwhile, so each ray makes the same decisions in the same
 order, and its result and counters are bit for bit those of the on-sight kernel.
 
-Lane refill (compile-time constant ``REFILL``; off generates the block-by-block code): without it a block's
-lanes idle from the end of their own ray to the end of the block's slowest one. With it each lane carries its
-own ray index: at the top of a loop step, where some lane is done (a warp-uniform branch), the done lanes store
-their results and take the program's next rays, in lane order by a prefix sum over them; the program's queue is
-its own blocks ``pid, pid + n_programs, ...`` ray by ray. A taken ray that is disabled is finished on the spot (the
-result the block loop would store for it) and its lane takes another. A new ray starts with the state a block
-start gives it (root or its own root, empty stack, no leaf, zero counters, an empty hit list, its curve frame,
-no pending curve test), and its traversal is the same sequence of steps whichever lane runs it and whenever:
-every result field and counter is bit for bit the block-by-block kernel's. The loop ends when no lane is busy
-and the queue is empty. Primitive structures only (``LEVELS = 0``), without keyframe motion or analytic leaves
-(with or without curves, ``CURVE_BATCH`` and hit lists); :mod:`jaxrt._src.traversal.gpu` compiles other calls
-without it.
-
 Instances (``LEVELS > 0``, a compile-time constant: with 0 the instance code is not generated): the kernel
 makes the decisions of the portable ``step.visit`` and ``step.transition``. An instance leaf is ordered and
 pushed like an inner node when its mask meets the ray's; a stack entry keeps its level in its low ``SHIFT``
@@ -406,127 +393,6 @@ def _store_result(
     tl.store(visited_ptr + ray, visited)
     tl.store(tested_ptr + ray, tested)
     tl.store(overflow_ptr + ray, overflow)
-
-
-@triton.jit
-def _clear_hits(hd_ptr, hl_ptr, n_rays, ray, mask, MAX_HITS: tl.constexpr, LANES: tl.constexpr):
-    """:func:`_start_hits` of a primitive structure where ``mask`` (lane refill)."""
-    for j in tl.static_range(MAX_HITS):
-        tl.store(hd_ptr + j * n_rays + ray, tl.full((LANES,), float("inf"), tl.float32), mask=mask)
-        tl.store(hl_ptr + j * n_rays + ray, tl.full((LANES,), -1, tl.int32), mask=mask)
-
-
-@triton.jit
-def _finish(
-    distance_ptr, leaf_ptr, visited_ptr, tested_ptr, overflow_ptr, hit_leaf_ptr, hit_total_ptr, ray, mask, distance,
-    leaf, visited, tested, overflow, total, MAX_HITS: tl.constexpr, COUNT: tl.constexpr,
-):  # fmt: skip
-    """The result of the ray of each lane where ``mask`` (lane refill): the end of the block loop's store."""
-    if MAX_HITS > 0:
-        leaf = tl.load(hit_leaf_ptr + ray, mask=mask, other=-1)
-    if MAX_HITS > 0 or COUNT:
-        tl.store(hit_total_ptr + ray, total, mask=mask)
-    tl.store(distance_ptr + ray, distance, mask=mask)
-    tl.store(leaf_ptr + ray, leaf, mask=mask)
-    tl.store(visited_ptr + ray, visited, mask=mask)
-    tl.store(tested_ptr + ray, tested, mask=mask)
-    tl.store(overflow_ptr + ray, overflow, mask=mask)
-
-
-@triton.jit
-def _claim(
-    rays_ptr, n_rays, n_programs, pid, ray, want, queued, count, distance_ptr, leaf_ptr, visited_ptr, tested_ptr,
-    overflow_ptr, hit_distance_ptr, hit_leaf_ptr, hit_total_ptr, MAX_HITS: tl.constexpr, COUNT: tl.constexpr,
-    LANES: tl.constexpr,
-):  # fmt: skip
-    """Hand the program's next rays to the lanes ``want``, in lane order (lane refill): ``(ray, take, queued)``.
-
-    The program's queue is its own blocks ``pid, pid + n_programs, ...`` ray by ray, ``queued`` of its
-    ``count`` rays handed out so far. A disabled ray is finished where it is claimed (the result the block loop
-    stores for it: distance ``-inf``, leaf -1, counters 0, an empty hit list) and its lane claims again, so
-    that ``take`` marks the lanes that got a ray to trace.
-    """
-    take = tl.zeros((LANES,), tl.int1)
-    more = (tl.max(want.to(tl.int32), axis=0) > 0) & (queued < count)
-    while more:
-        wanted = want.to(tl.int32)
-        q = queued + tl.cumsum(wanted, axis=0) - 1
-        got = want & (q < count)
-        ray = tl.where(got, (pid + (q // LANES) * n_programs) * LANES + q % LANES, ray)
-        queued = tl.minimum(queued + tl.sum(wanted, axis=0), count)
-        enabled = tl.load(rays_ptr + 14 * n_rays + ray, mask=got, other=0.0) != 0
-        off = got & (enabled == 0)
-        zero = tl.zeros((LANES,), tl.int32)
-        if MAX_HITS > 0:
-            _clear_hits(hit_distance_ptr, hit_leaf_ptr, n_rays, ray, off, MAX_HITS, LANES)
-        _finish(
-            distance_ptr, leaf_ptr, visited_ptr, tested_ptr, overflow_ptr, hit_leaf_ptr, hit_total_ptr, ray, off,
-            tl.full((LANES,), float("-inf"), tl.float32), zero - 1, zero, zero, zero, zero, MAX_HITS, COUNT,
-        )  # fmt: skip
-        take = take | (got & enabled)
-        want = off
-        more = (tl.max(off.to(tl.int32), axis=0) > 0) & (queued < count)
-    return ray, take, queued
-
-
-@triton.jit
-def _reload_ray(rays_ptr, n_rays, ray, take, state):
-    """:func:`_load_ray` where ``take`` (the lane took ray ``ray``); ``state`` (the values :func:`_load_ray`
-    returns but ``done``) elsewhere. Lane refill; the new rays are enabled."""
-    ox, oy, oz, ix, iy, iz, sx, sy, sz, t_min, kx, ky, kz, okx, oky, okz, distance = state
-    nox = tl.load(rays_ptr + ray, mask=take, other=0.0)
-    noy = tl.load(rays_ptr + n_rays + ray, mask=take, other=0.0)
-    noz = tl.load(rays_ptr + 2 * n_rays + ray, mask=take, other=0.0)
-    nkx = tl.load(rays_ptr + 11 * n_rays + ray, mask=take, other=0.0).to(tl.int32)
-    nky = tl.load(rays_ptr + 12 * n_rays + ray, mask=take, other=0.0).to(tl.int32)
-    nkz = tl.load(rays_ptr + 13 * n_rays + ray, mask=take, other=0.0).to(tl.int32)
-    return (
-        _renew(ox, nox, take),
-        _renew(oy, noy, take),
-        _renew(oz, noz, take),
-        _renew(ix, tl.load(rays_ptr + 3 * n_rays + ray, mask=take, other=0.0), take),
-        _renew(iy, tl.load(rays_ptr + 4 * n_rays + ray, mask=take, other=0.0), take),
-        _renew(iz, tl.load(rays_ptr + 5 * n_rays + ray, mask=take, other=0.0), take),
-        _renew(sx, tl.load(rays_ptr + 6 * n_rays + ray, mask=take, other=0.0), take),
-        _renew(sy, tl.load(rays_ptr + 7 * n_rays + ray, mask=take, other=0.0), take),
-        _renew(sz, tl.load(rays_ptr + 8 * n_rays + ray, mask=take, other=0.0), take),
-        _renew(t_min, tl.load(rays_ptr + 9 * n_rays + ray, mask=take, other=0.0), take),
-        _renew(kx, nkx, take),
-        _renew(ky, nky, take),
-        _renew(kz, nkz, take),
-        _renew(okx, _select(nkx, nox, noy, noz), take),
-        _renew(oky, _select(nky, nox, noy, noz), take),
-        _renew(okz, _select(nkz, nox, noy, noz), take),
-        _renew(distance, tl.load(rays_ptr + 10 * n_rays + ray, mask=take, other=0.0), take),
-    )
-
-
-@triton.jit
-def _reload_curve_ray(rays_ptr, n_rays, ray, take, cray, ox, oy, oz):
-    """:func:`~jaxrt._src.traversal.triton_curves.curve_ray` of the origin ``ox, oy, oz`` where ``take``, the
-    frame of ``cray`` elsewhere (lane refill)."""
-    _, _, _, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz, scale_t = cray
-    return (
-        ox,
-        oy,
-        oz,
-        _renew(e1x, tl.load(rays_ptr + 24 * n_rays + ray, mask=take, other=0.0), take),
-        _renew(e1y, tl.load(rays_ptr + 25 * n_rays + ray, mask=take, other=0.0), take),
-        _renew(e1z, tl.load(rays_ptr + 26 * n_rays + ray, mask=take, other=0.0), take),
-        _renew(e2x, tl.load(rays_ptr + 27 * n_rays + ray, mask=take, other=0.0), take),
-        _renew(e2y, tl.load(rays_ptr + 28 * n_rays + ray, mask=take, other=0.0), take),
-        _renew(e2z, tl.load(rays_ptr + 29 * n_rays + ray, mask=take, other=0.0), take),
-        _renew(nx, tl.load(rays_ptr + 30 * n_rays + ray, mask=take, other=0.0), take),
-        _renew(ny, tl.load(rays_ptr + 31 * n_rays + ray, mask=take, other=0.0), take),
-        _renew(nz, tl.load(rays_ptr + 32 * n_rays + ray, mask=take, other=0.0), take),
-        _renew(scale_t, tl.load(rays_ptr + 33 * n_rays + ray, mask=take, other=0.0), take),
-    )
-
-
-@triton.jit
-def _renew(old, new, take):
-    """Per-lane ray constants: ``new`` where the lane took a new ray (lane refill)."""
-    return tl.where(take, new, old)
 
 
 @triton.jit
@@ -952,7 +818,6 @@ def trace_kernel(
     SPHERE: tl.constexpr = False,
     FLAT: tl.constexpr = 0,
     CURVE_BATCH: tl.constexpr = 0,
-    REFILL: tl.constexpr = False,
 ):
     """Trace ``n_rays`` rays (a multiple of ``LANES``); outputs as :class:`~jaxrt._src.traversal.scene.TraversalResult`.
 
@@ -987,10 +852,6 @@ def trace_kernel(
     ``PIECES`` to ``FLAT`` are :func:`~jaxrt._src.traversal.triton_curves.curve_leaf`'s). ``CURVE_BATCH > 0``
     defers curve tests until that many lanes wait for one (or no other lane can step; see the module
     docstring): the same results, fewer warp-wide curve tests. 0 tests them on sight (binary nodes, ``BRANCH``).
-
-    Lane refill (``REFILL = False`` compiles none of this; see the module docstring): a lane whose ray is done
-    stores its result and takes the program's next ray at once; the same results bit for bit. ``LEVELS = 0``,
-    without keyframe motion or analytic leaves (the caller's choice: the kernel does not check).
     """
     pid = tl.program_id(0)
     lane = tl.arange(0, LANES)
@@ -1066,59 +927,8 @@ def trace_kernel(
             kept_curve1 = tl.zeros((LANES,), tl.int1)
         # One warp reduction per step: bit 0 / 1, some lane tests leaf child 0 / 1; bit 2, some lane was
         # active when the step began. The loop therefore ends one (fully masked, no-op) step after the last ray.
-        if REFILL:
-            # Each lane carries its own ray (``ray``); ``live``: its result is not stored yet. The program's
-            # queue is its blocks ``pid, pid + n_programs, ...`` ray by ray, ``queued`` of ``count`` handed out.
-            live = done == done
-            queued = block * 0 + LANES
-            count = ((n_rays // LANES - pid + n_programs - 1) // n_programs) * LANES
-            go = tl.max(done * 0 + 1, axis=0)  # the first step refills the block's disabled rays
-        else:
-            go = tl.max(1 - done, axis=0)
+        go = tl.max(1 - done, axis=0)
         while go > 0:
-            if REFILL:
-                # A lane whose ray is finished stores its result and takes the program's next ray (a warp-uniform
-                # branch, taken where some lane is idle and has a result to store or a ray to take).
-                idle = done != 0
-                flags = tl.reduce(idle.to(tl.int32) | ((idle & live).to(tl.int32) << 1), 0, _bit_or)
-                if ((flags & 2) != 0) | (((flags & 1) != 0) & (queued < count)):
-                    if MAX_HITS > 0 or COUNT:
-                        kept = total
-                    else:
-                        kept = visited
-                    _finish(
-                        distance_ptr, leaf_ptr, visited_ptr, tested_ptr, overflow_ptr, hit_leaf_ptr, hit_total_ptr, ray,
-                        idle & live, distance, leaf, visited, tested, overflow, kept, MAX_HITS, COUNT,
-                    )  # fmt: skip
-                    ray, take, queued = _claim(
-                        rays_ptr, n_rays, n_programs, pid, ray, idle, queued, count, distance_ptr, leaf_ptr,
-                        visited_ptr, tested_ptr, overflow_ptr, hit_distance_ptr, hit_leaf_ptr, hit_total_ptr,
-                        MAX_HITS, COUNT, LANES,
-                    )  # fmt: skip
-                    live = (live & (idle == 0)) | take
-                    ox, oy, oz, ix, iy, iz, sx, sy, sz, t_min, kx, ky, kz, okx, oky, okz, distance = _reload_ray(
-                        rays_ptr, n_rays, ray, take,
-                        (ox, oy, oz, ix, iy, iz, sx, sy, sz, t_min, kx, ky, kz, okx, oky, okz, distance),
-                    )  # fmt: skip
-                    done = tl.where(take, 0, done)
-                    if ROOTS:
-                        root = tl.load(rays_ptr + 16 * n_rays + ray, mask=take, other=0.0).to(tl.int32, bitcast=True)
-                        node = tl.where(take, root, node)
-                    else:
-                        node = tl.where(take, 0, node)
-                    depth = tl.where(take, 0, depth)
-                    leaf = tl.where(take, -1, leaf)
-                    visited = tl.where(take, 0, visited)
-                    tested = tl.where(take, 0, tested)
-                    overflow = tl.where(take, 0, overflow)
-                    if MAX_HITS > 0:
-                        _clear_hits(hit_distance_ptr, hit_leaf_ptr, n_rays, ray, take, MAX_HITS, LANES)
-                    if MAX_HITS > 0 or COUNT:
-                        total = tl.where(take, 0, total)
-                    if CURVES:
-                        cray = _reload_curve_ray(rays_ptr, n_rays, ray, take, cray, ox, oy, oz)
-                    if CURVE_BATCH > 0:
-                        pending = pending & (take == 0)
             active = done == 0
             if CURVE_BATCH > 0:
                 fresh = active & (pending == 0)  # pending lanes take no box step
@@ -1312,16 +1122,12 @@ def trace_kernel(
                     oky = _select(ky, ox, oy, oz)
                     okz = _select(kz, ox, oy, oz)
 
-        if REFILL:
-            # Every ray of the program's queue was traced and its result stored in the loop.
-            block = n_rays // LANES
-        else:
-            if MAX_HITS > 0:
-                leaf = tl.load(hit_leaf_ptr + ray)
-            if MAX_HITS > 0 or COUNT:
-                tl.store(hit_total_ptr + ray, total)
-            _store_result(distance_ptr, leaf_ptr, visited_ptr, tested_ptr, overflow_ptr, ray, distance, leaf, visited, tested, overflow)  # fmt: skip
-            block += n_programs
+        if MAX_HITS > 0:
+            leaf = tl.load(hit_leaf_ptr + ray)
+        if MAX_HITS > 0 or COUNT:
+            tl.store(hit_total_ptr + ray, total)
+        _store_result(distance_ptr, leaf_ptr, visited_ptr, tested_ptr, overflow_ptr, ray, distance, leaf, visited, tested, overflow)  # fmt: skip
+        block += n_programs
 
 
 @triton.jit
