@@ -239,13 +239,10 @@ def _sheared(x, y, z, o0, o1, o2, kx, ky, kz, sx, sy, sz):
     return _fma(-sx, az, _pick(kx, r0, r1, r2)), _fma(-sy, az, _pick(ky, r0, r1, r2)), sz * az
 
 
-@numba.njit(cache=True)
-def _triangle(v, o0, o1, o2, kx, ky, kz, sx, sy, sz, t_min, t_max, cull, inf):
-    """The watertight test (:func:`jaxrt._src.primitives.triangle.watertight`) of a triangle ``v`` (nine
-    coordinates) with a cull sense ``cull`` (+1 culls clockwise, -1 counterclockwise): ``(accepted, distance)``."""
-    ax, ay, z0 = _sheared(v[0], v[1], v[2], o0, o1, o2, kx, ky, kz, sx, sy, sz)
-    bx, by, z1 = _sheared(v[3], v[4], v[5], o0, o1, o2, kx, ky, kz, sx, sy, sz)
-    cx, cy, z2 = _sheared(v[6], v[7], v[8], o0, o1, o2, kx, ky, kz, sx, sy, sz)
+@numba.njit(cache=True, inline="always")
+def _watertight(ax, ay, z0, bx, by, z1, cx, cy, z2, t_min, t_max, cull, inf):
+    """The watertight test's edge functions, culling and distance on the sheared vertices ``(x, y, z)`` of a
+    triangle (cull sense ``cull``: +1 culls clockwise, -1 counterclockwise): ``(accepted, distance)``."""
     e0 = _rounded_product(cx, by) - _rounded_product(cy, bx)
     e1 = _rounded_product(ax, cy) - _rounded_product(ay, cx)
     e2 = _rounded_product(bx, ay) - _rounded_product(by, ax)
@@ -262,6 +259,16 @@ def _triangle(v, o0, o1, o2, kx, ky, kz, sx, sy, sz, t_min, t_max, cull, inf):
     if t >= t_min and t <= t_max:
         return True, t
     return False, inf
+
+
+@numba.njit(cache=True)
+def _triangle(v, o0, o1, o2, kx, ky, kz, sx, sy, sz, t_min, t_max, cull, inf):
+    """The watertight test (:func:`jaxrt._src.primitives.triangle.watertight`) of a triangle ``v`` (nine
+    coordinates) with a cull sense ``cull`` (+1 culls clockwise, -1 counterclockwise): ``(accepted, distance)``."""
+    ax, ay, z0 = _sheared(v[0], v[1], v[2], o0, o1, o2, kx, ky, kz, sx, sy, sz)
+    bx, by, z1 = _sheared(v[3], v[4], v[5], o0, o1, o2, kx, ky, kz, sx, sy, sz)
+    cx, cy, z2 = _sheared(v[6], v[7], v[8], o0, o1, o2, kx, ky, kz, sx, sy, sz)
+    return _watertight(ax, ay, z0, bx, by, z1, cx, cy, z2, t_min, t_max, cull, inf)
 
 
 @numba.njit(cache=True)
@@ -731,18 +738,4 @@ def _triangle_at(tf, q, ux, uy, uz, ox, oy, oz, sx, sy, sz, t_min, t_max, cull, 
     cx = _fma(-sx, cz, tf[q + _U6 + ux] - ox)
     cy = _fma(-sy, cz, tf[q + _U6 + uy] - oy)
     z0, z1, z2 = sz * az, sz * bz, sz * cz
-    e0 = _rounded_product(cx, by) - _rounded_product(cy, bx)
-    e1 = _rounded_product(ax, cy) - _rounded_product(ay, cx)
-    e2 = _rounded_product(bx, ay) - _rounded_product(by, ax)
-    negative = e0 < 0 or e1 < 0 or e2 < 0
-    positive = e0 > 0 or e1 > 0 or e2 > 0
-    det = e0 + e1 + e2
-    if (negative and positive) or det == 0:
-        return False, inf
-    clockwise = det < 0
-    if (cull > 0 and clockwise) or (cull < 0 and not clockwise):
-        return False, inf
-    t = _fma(e2, z2, _fma(e0, z0, e1 * z1)) / det
-    if t >= t_min and t <= t_max:
-        return True, t
-    return False, inf
+    return _watertight(ax, ay, z0, bx, by, z1, cx, cy, z2, t_min, t_max, cull, inf)
