@@ -407,9 +407,9 @@ def test_gradients_through_the_kernel_path(kernel_path):
 
 
 @kernel_test
-def test_user_functions_take_the_portable_path(kernel_path):
-    """A user-written sphere (not the built-in, even if it calls it) is traced by the portable path: no
-    launch, and the same hits as the built-in on the kernel; forcing the kernel names the reason."""
+def test_user_functions_take_the_kernel_in_candidate_waves(kernel_path):
+    """A user-written sphere (not the built-in, even if it calls it) is decided in JAX on the candidates the
+    kernel lists (``traversal.waves``): launches, and the same hits as the built-in on the kernel."""
     structure, functions, params = shapes_structure(95, ("sphere",), 8)
     ray = as_ray(rays(32, 96, params))
 
@@ -417,10 +417,8 @@ def test_user_functions_take_the_portable_path(kernel_path):
         return FUNCTIONS.sphere(r, candidate)
 
     LAUNCHES.clear()
-    mine = rt.Intersector(intersection_functions={0: my_sphere}).intersect(ray, structure)
-    assert not LAUNCHES
-    with pytest.raises(ValueError, match=r"backend='gpu' cannot run: .*user intersection functions \(geometry 0"):
-        rt.Intersector(intersection_functions={0: my_sphere}, backend="gpu").intersect(ray, structure)
+    mine = rt.Intersector(intersection_functions={0: my_sphere}, backend="gpu").intersect(ray, structure)
+    assert LAUNCHES
     builtin, _ = intersect_both(dict(intersection_functions=functions), ray, structure)
     assert_same_fields(mine, builtin)
     assert (np.asarray(mine.type) != 0).sum() > 5
@@ -442,16 +440,18 @@ def test_kernel_declines_only_user_functions():
         return FUNCTIONS.disk(ray, candidate)
 
     user = rt.Intersector(intersection_functions={**functions, 1: my_disk})
-    reason = pipeline.kernel_declines(user, infos)
-    assert reason.startswith("bounding-box geometry with user intersection functions (geometry 1: my_disk)")
+    assert pipeline.kernel_declines(user, infos) is None  # candidate waves (test_gpu_waves.py)
+    reason = pipeline.kernel_declines(user, infos, "gpu", levels=1)
+    assert reason.startswith("bounding-box geometry with user intersection functions (geometry 1: my_disk) below")
     lambdas = rt.Intersector(intersection_functions={0: lambda r, c: FUNCTIONS.sphere(r, c)})
-    assert "user intersection functions" in pipeline.kernel_declines(lambdas, infos)
+    assert "user intersection functions" in pipeline.kernel_declines(lambdas, infos, "gpu", True)
     non_opaque = rt.build_primitive_structure(
         [shape_geometry("sphere", shape_data(np.random.default_rng(1), 2)), rt.TriangleGeometry(
             np.eye(3, dtype=np.float32), opaque=False)]
     )  # fmt: skip
     filtered = rt.Intersector(intersection_functions={0: FUNCTIONS.sphere}, filter=lambda c: jnp.asarray(True))
-    assert "filters on non-opaque" in pipeline.kernel_declines(filtered, non_opaque.geometry_info)
+    assert pipeline.kernel_declines(filtered, non_opaque.geometry_info) is None  # candidate waves
+    assert "filters on non-opaque" in pipeline.kernel_declines(filtered, non_opaque.geometry_info, "gpu", levels=1)
 
 
 @pytest.mark.parametrize("with_data", [True, False])

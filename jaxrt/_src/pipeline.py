@@ -24,7 +24,7 @@ from jaxrt._src.numerics import full_precision
 from jaxrt._src.ray import Ray
 from jaxrt._src.result import IntersectionResult
 from jaxrt._src.scene_view import SceneView, scene_view
-from jaxrt._src.traversal import drivers
+from jaxrt._src.traversal import drivers, waves
 from jaxrt._src.traversal.scene import TraversalResult
 
 __all__ = [
@@ -97,11 +97,17 @@ def kernel_declines(
     cases: triangles, bounding boxes whose functions are the built-in ``rt.intersection_functions``
     (recognised by identity) and hit lists (``max_hits`` and counting), except keyframe motion and round and
     flat curves in a static primitive structure, which only the GPU kernel traces (curves and boxes in one
-    structure are not combined there). Declined scenes take the portable traversal: curves below instances or
-    with motion, user intersection functions and filters call JAX code per candidate.
+    structure are not combined there). User intersection functions and filters call JAX code per candidate:
+    the GPU kernel covers them in a static primitive structure without curves, listing candidates in waves
+    (:mod:`jaxrt._src.traversal.waves`); elsewhere they take the portable traversal, as do curves below
+    instances or with motion.
     """
     name = "CPU traversal" if backend == "cpu" else "GPU kernel"
     kinds = {g.kind for g in geometry_info}
+    moving = motion or any(g.motion for g in geometry_info)
+    # User code per candidate: the GPU kernel lists candidates in waves (traversal.waves) in a static primitive
+    # structure without curves.
+    in_waves = backend == "gpu" and not levels and not moving and "curve" not in kinds
     if "curve" in kinds:
         if backend == "cpu":
             return f"curves are not covered by the {name}"
@@ -112,14 +118,23 @@ def kernel_declines(
         if "bounding_box" in kinds:
             return f"curves and bounding-box geometry in one structure are not covered by the {name}"
     if "bounding_box" in kinds:
-        reason = _analytic_declines(intersector, backend, motion or any(g.motion for g in geometry_info))
-        if reason is not None:
+        reason = _analytic_declines(intersector, backend, moving)
+        if reason is not None and not (in_waves and _user_functions(intersector)):
             return reason
-    if intersector.filter is not None and any(g.kind == "triangle" and not g.opaque for g in geometry_info):
-        return f"filters on non-opaque geometry are not covered by the {name}"
+    filtered = intersector.filter is not None and any(g.kind == "triangle" and not g.opaque for g in geometry_info)
+    if filtered and not in_waves:
+        where = "" if backend == "cpu" else " below instances, with keyframe motion or with curves"
+        return f"filters on non-opaque geometry{where} are not covered by the {name}"
     if backend == "cpu" and (motion or any(g.motion for g in geometry_info)):
         return f"keyframe motion is not covered by the {name}"
     return None
+
+
+def _user_functions(intersector: Any) -> bool:
+    """Whether some intersection function of ``intersector`` is user code (not a built-in shape)."""
+    from jaxrt._src.primitives import analytic
+
+    return any(not analytic.shape_code(fn) for _, fn in intersector.intersection_functions or ())
 
 
 def _analytic_declines(intersector: Any, backend: str, motion: bool) -> str | None:
@@ -136,8 +151,9 @@ def _analytic_declines(intersector: Any, backend: str, motion: bool) -> str | No
     ]
     if user or not functions:
         listed = f" ({', '.join(user)})" if user else ""
+        where = " below instances, with keyframe motion or with curves" if backend == "gpu" and user else ""
         return (
-            f"bounding-box geometry with user intersection functions{listed} is not covered by the {name} "
+            f"bounding-box geometry with user intersection functions{listed}{where} is not covered by the {name} "
             "(it traces rt.intersection_functions.sphere, disk and capped_cylinder)"
         )
     if motion:
@@ -202,6 +218,38 @@ def _trace_portable(intersector: Any, view: SceneView, rays: SanitizedRays) -> T
     return _chunked(fn, args, chunk)
 
 
+def _trace_waves(intersector: Any, view: SceneView, rays: SanitizedRays) -> TraversalResult:
+    """The GPU kernel in candidate waves (:mod:`jaxrt._src.traversal.waves`): user functions and filters."""
+    from jaxrt._src.traversal import gpu
+
+    detached = lax.stop_gradient
+    scene = jax.tree_util.tree_map(detached, view.traversal)
+    analytic = None
+    if "bounding_box" in view.kinds:
+        analytic = gpu.analytic_leaves(intersector.intersection_functions, view, jnp.float32, candidates=True)
+    origin, direction, t_min = (detached(a) for a in (rays.origin, rays.direction, rays.t_min))
+    candidates = waves.CANDIDATES
+
+    def list_candidates(t_max, enabled, cursor_t, cursor_leaf):
+        return gpu.trace_scene(
+            scene,
+            view.layout,
+            origin,
+            direction,
+            t_min,
+            t_max,
+            enabled,
+            rays.mask,
+            any_hit=False,
+            cull=intersector.cull,
+            max_hits=candidates,
+            analytic=analytic,
+            cursor=(cursor_t, cursor_leaf),
+        )
+
+    return waves.trace_waves(intersector, view, rays, list_candidates, candidates=candidates)
+
+
 def trace(intersector: Any, view: SceneView, rays: SanitizedRays, host: Any = None) -> TraversalResult:
     """Run the traversal the intersector and scene call for (a compiled one where it covers them). ``host``:
     the addresses the CPU traversal may read the scene from (:func:`jaxrt._src.traversal.cpu.host_scene`)."""
@@ -221,6 +269,8 @@ def trace(intersector: Any, view: SceneView, rays: SanitizedRays, host: Any = No
         if intersector.max_hits is not None or intersector.counts_all:
             moving.update(max_hits=0 if intersector.counts_all else intersector.max_hits)
             moving.update(count_all=intersector.counts_all)
+        if backend == "gpu" and waves.needs_waves(intersector, view):  # user code per candidate
+            return _trace_waves(intersector, view, rays)
         if "bounding_box" in view.kinds:  # built-in functions (kernel_declines)
             dtype = view.traversal.node_lower.dtype if backend == "cpu" else jnp.float32
             moving.update(analytic=gpu.analytic_leaves(intersector.intersection_functions, view, dtype))

@@ -87,9 +87,10 @@ COVERED_TAGS = frozenset(
 MAX_PROGRAMS = 1 << 15
 #: Leading arguments of the kernel call that come from the scene (the rest are per ray).
 SCENE_ARGS = 16
-#: Per-ray arguments after them (origin, direction, t_min, t_max, enabled, mask, time, root); a prepacked call
-#: appends the structure's node and triangle rows (:class:`~jaxrt._src.traversal.packed.KernelLayout`).
-RAY_ARGS = 8
+#: Per-ray arguments after them (origin, direction, t_min, t_max, enabled, mask, time, cursor distance, cursor
+#: leaf, root); a prepacked call appends the structure's node and triangle rows
+#: (:class:`~jaxrt._src.traversal.packed.KernelLayout`).
+RAY_ARGS = 10
 
 
 #: Default :attr:`KernelOptions.curve_batch`; the environment variable ``JAXRT_CURVE_BATCH`` (read at import)
@@ -162,6 +163,7 @@ class _Config:
     count: bool = False  # count every accepted hit (no hit list)
     analytic: int = 0  # analytic leaves: bits 0-2 their shapes, bit 3 triangles too (0: triangles only)
     curves: tuple = ()  # with curve leaves: CurveLeaves.options (pieces, ..., disk, sphere, flat)
+    cursor: bool = False  # candidate waves: list only candidates past each ray's cursor, in (distance, leaf) order
 
     @property
     def hit_list(self) -> bool:
@@ -286,6 +288,8 @@ def kernel_call(
     )
     batched = config.curves and levels == 0 and options.leaf_branch
     params.update(CURVE_BATCH=min(options.curve_batch, lanes) if batched else 0)
+    if config.cursor:
+        params.update(CURSOR=True)
     k = config.max_hits
     extra = (
         jax.ShapeDtypeStruct((max(1, levels * size),), jnp.int32),  # instance chain, (levels, size)
@@ -343,7 +347,8 @@ def _kernel(*args, config: _Config) -> tuple[jax.Array, ...]:
     """
     (node_lower, node_upper, node_children, node_range, leaf_triangle, world_to_object, child_root, facing,
      instance_mask, node_keys_lower, node_keys_upper, leaf_keys, leaf_moving, instance_motion, leaf_analytic,
-     curve_rows, origin, direction, t_min, t_max, enabled, mask, time, root) = args[: SCENE_ARGS + RAY_ARGS]  # fmt: skip
+     curve_rows, origin, direction, t_min, t_max, enabled, mask, time, cursor_t, cursor_leaf,
+     root) = args[: SCENE_ARGS + RAY_ARGS]  # fmt: skip
     n = origin.shape[0]
     lanes = config.options.rays_per_program
     size = max(lanes, -(-n // lanes) * lanes)
@@ -364,8 +369,9 @@ def _kernel(*args, config: _Config) -> tuple[jax.Array, ...]:
         triangles = jnp.where(leaf_analytic[:, 3:4] != 0, leaf_analytic, triangles)
     instances = packed.pack_instances(world_to_object, child_root, facing, instance_mask)
     extended = config.levels > 0 or config.roots or config.motion or bool(config.analytic) or bool(config.curves)
+    extended = extended or config.cursor
     motion = None
-    if config.motion or config.curves:
+    if config.motion or config.curves or config.cursor:
         if config.leaf_keys:  # the scene's keyframe segment at each ray's time, as the portable path finds it
             position = spec_position(config.leaf_spec, config.leaf_keys, time)
         else:  # (also the placeholder rows before the curve rows)
@@ -383,6 +389,7 @@ def _kernel(*args, config: _Config) -> tuple[jax.Array, ...]:
         root=root if extended else None,
         motion=motion,
         curve_frame=_curve_frames(origin, direction) if config.curves else None,
+        cursor=(cursor_t, cursor_leaf) if config.cursor else None,
     )
     moving_instances = instance_motion if config.instance_keys else None
     curves = curve_rows if config.curves else None
@@ -539,6 +546,11 @@ def leaf_motion(view: Any) -> LeafMotion | None:
     return LeafMotion(motion.spec, lax.stop_gradient(motion.triangle), moving)
 
 
+#: The shape code of a box leaf whose intersection function is user code (candidate waves): the kernel lists the
+#: box at its entry distance and JAX calls the function.
+CANDIDATE_BOX = 4
+
+
 class AnalyticLeaves(NamedTuple):
     """The parameter rows of a scene's analytic leaves, as the kernel reads them (:func:`analytic_leaves`)."""
 
@@ -546,7 +558,9 @@ class AnalyticLeaves(NamedTuple):
     shapes: int  # static: bit ``code - 1`` for each shape of the intersector's functions, bit 3 with triangles
 
 
-def analytic_leaves(functions: Any, view: Any, dtype: Any = jnp.float32) -> AnalyticLeaves | None:
+def analytic_leaves(
+    functions: Any, view: Any, dtype: Any = jnp.float32, *, candidates: bool = False
+) -> AnalyticLeaves | None:
     """The :class:`AnalyticLeaves` of a :class:`~jaxrt._src.scene_view.SceneView` whose bounding-box
     geometries use built-in functions (``functions``: the intersector's ``(geometry index, fn)`` pairs;
     ``None`` without box geometry), in ``dtype`` (float32 for this kernel; the CPU traversal takes the
@@ -556,8 +570,12 @@ def analytic_leaves(functions: Any, view: Any, dtype: Any = jnp.float32) -> Anal
     structure, as the portable ``call_function``); its parameters are read as the function reads them: from
     the scene's primitive data, or, for a sphere in a scene without primitive data, from the leaf's box.
 
+    With ``candidates`` (candidate waves, :mod:`jaxrt._src.traversal.waves`), the leaves of a user function
+    take code 4: the kernel lists the box itself as a candidate (bit 4 of ``shapes``).
+
     Raises:
-      ValueError: a function that is not built-in, or primitive data without the fields a function reads.
+      ValueError: a function that is not built-in (without ``candidates``), or primitive data without the
+        fields a function reads.
     """
     from jaxrt._src import leaves as leaf_tests
     from jaxrt._src.primitives import analytic
@@ -568,11 +586,12 @@ def analytic_leaves(functions: Any, view: Any, dtype: Any = jnp.float32) -> Anal
     shapes = 8 if "triangle" in view.kinds else 0
     for index, fn in functions or ():
         code = analytic.shape_code(fn)
-        if not code:
+        if not code and not candidates:
             raise ValueError(f"traversal.gpu: the intersection function of geometry {index} ({fn!r}) is not built-in")
+        code = code or CANDIDATE_BOX
         if index < codes.shape[0] - 1:
             codes[index] = code
-        shapes |= 1 << (code - 1)
+        shapes |= 1 << (code - 1) if code != CANDIDATE_BOX else 16
     leaves = view.leaves
     count = leaves.geometry.shape[0]
     is_box = view.leaf_flag(view.slot_table(leaf_tests.box_slots(view)), jnp.arange(count))
@@ -661,6 +680,7 @@ def trace_scene(
     count_all: bool = False,
     analytic: AnalyticLeaves | None = None,
     curves: CurveLeaves | None = None,
+    cursor: tuple[jax.Array, jax.Array] | None = None,
 ) -> TraversalResult:
     """Trace rays through a scene of any instance depth with the GPU kernel.
 
@@ -688,6 +708,10 @@ def trace_scene(
         leaves tested as the built-in intersection functions test them (not with keyframe motion).
       curves: the round curve leaves of a primitive structure (:func:`curve_leaves`): leaves whose row is a
         curve take the portable ``curve.intersect`` test (in the kernel) instead of the triangle test.
+      cursor: ``((N,) distances, (N,) leaves)``: one wave of candidates (:mod:`jaxrt._src.traversal.waves`;
+        with ``max_hits``, a primitive structure): the hit list keeps the ``K`` first hits past each ray's
+        cursor in ``(distance, leaf)`` order (ties by leaf, not by arrival), and the box leaves of user
+        functions (code 4 in ``analytic``) are listed at their entry distance.
 
     Returns:
       The portable traversal's :class:`~jaxrt._src.traversal.scene.TraversalResult`: the leaf (-1 on a miss),
@@ -720,6 +744,8 @@ def trace_scene(
     _check_indices(scene.node_children.shape[0], scene.instance_child_root.shape[0], levels)
     if curves is not None and (levels or moving):
         raise ValueError("traversal.gpu.trace_scene: curves are covered in static primitive structures only")
+    if cursor is not None and (k < 1 or count_all or levels or layout.root != 0 or moving):
+        raise ValueError("traversal.gpu.trace_scene: a cursor needs max_hits >= 1 in a static primitive structure")
     rows = getattr(scene, "kernel_layout", None)
     prepacked = rows is not None and options.node_width == 2 and levels == 0 and layout.root == 0 and not moving
     config = _Config(
@@ -735,6 +761,7 @@ def trace_scene(
         count=bool(count_all),
         analytic=0 if analytic is None else int(analytic.shapes),
         curves=curves.options if curves is not None else (),
+        cursor=cursor is not None,
     )
     detached = lax.stop_gradient
     motion_args, config = _motion_arguments(scene, layout, leaf_motion, config)
@@ -757,6 +784,7 @@ def trace_scene(
         enabled,
         mask.astype(jnp.uint32),
         detached(time).astype(jnp.float32),
+        *(_no_cursor(origin.shape[0]) if cursor is None else (detached(cursor[0]), cursor[1].astype(jnp.int32))),
         jnp.full(origin.shape[:1], layout.root, jnp.int32),
         *((detached(rows.nodes), detached(rows.triangles)) if prepacked else ()),
     )
@@ -766,6 +794,11 @@ def trace_scene(
         distances, leaves, total, chains = found
         hits = HitList(distances, leaves, total, chains if levels else None)
     return TraversalResult(distance, leaf, instances, visited, tested, overflow.astype(bool), hits)
+
+
+def _no_cursor(n: int) -> tuple[jax.Array, jax.Array]:
+    """The cursor arguments of a call without one (every candidate is past it; not read by the kernel)."""
+    return jnp.full((n,), -jnp.inf, jnp.float32), jnp.full((n,), -1, jnp.int32)
 
 
 def trace(

@@ -310,11 +310,14 @@ def pack_rays(
     root: jax.Array | None = None,
     motion: tuple[jax.Array, jax.Array, jax.Array, jax.Array] | None = None,
     curve_frame: jax.Array | None = None,
+    cursor: tuple[jax.Array, jax.Array] | None = None,
 ) -> jax.Array:
     """The ``(16, size)`` float32 ray block, or the extended ``(20, size)`` one when ``mask`` and ``root`` are
     given, or the ``(24, size)`` one when ``motion`` (keyframe segment, weight, visibility and time per ray)
     is given too, or the ``(34, size)`` one when ``curve_frame`` (``(N, 10)``: the curve frame row by row and
-    ``1 / |d|``) is given too; columns past the ray count are disabled rays.
+    ``1 / |d|``) is given too (zeros where ``cursor`` is given without it), or the ``(36, size)`` one when
+    ``cursor`` (each ray's cursor distance and leaf, for candidate waves) is given too; columns past the ray
+    count are disabled rays.
 
     The per-ray constants are computed here with the same functions as the portable traversal, so both
     paths start from bit-identical values.
@@ -339,6 +342,14 @@ def pack_rays(
             ]
             if curve_frame is not None:
                 extra.append(curve_frame.astype(jnp.float32))
+            elif cursor is not None:
+                extra.append(jnp.zeros((n, 10), jnp.float32))
+            if cursor is not None:
+                cursor_t, cursor_leaf = cursor
+                extra += [
+                    cursor_t.astype(jnp.float32)[:, None],
+                    lax.bitcast_convert_type(cursor_leaf.astype(jnp.int32), jnp.float32)[:, None],
+                ]
     columns = jnp.concatenate(
         [
             origin.astype(jnp.float32),

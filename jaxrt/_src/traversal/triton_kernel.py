@@ -404,6 +404,22 @@ def _keep_nearer(hit, t, index, distance, leaf):
 
 
 @triton.jit
+def _candidate_box(tris_ptr, leaf, test, near, hit, t, LANES: tl.constexpr):
+    """Bounding-box leaves whose intersection function is user code (shape code 4): the box itself is the
+    candidate, at its entry distance ``near`` (the slab test's, clamped to ``t_min``), for JAX to decide."""
+    code = tl.load(tris_ptr + leaf * 12 + 3, mask=test, other=0.0)
+    box = test & (code == 4.0)
+    return hit | box, tl.where(box, near, t)
+
+
+@triton.jit
+def _past_cursor(hit, t, leaf, cursor_t, cursor_leaf):
+    """Keep only candidates past the cursor in ``(distance, leaf)`` order: the previous waves listed the rest."""
+    past = hit & ((t > cursor_t) | ((t == cursor_t) & (leaf > cursor_leaf)))
+    return past, tl.where(past, t, float("inf"))
+
+
+@triton.jit
 def _start_hits(hd_ptr, hl_ptr, hc_ptr, n_rays, ray, MAX_HITS: tl.constexpr, LEVELS: tl.constexpr, LANES: tl.constexpr):
     """An empty hit list for one ray per lane: every entry at distance ``inf``, leaf -1, chain -1."""
     for j in tl.static_range(MAX_HITS):
@@ -428,14 +444,21 @@ def _insert_hit(
     MAX_HITS: tl.constexpr,
     LEVELS: tl.constexpr,
     LANES: tl.constexpr,
+    ORDER: tl.constexpr = False,
 ):
     """Insert a hit at distance ``t`` into the sorted list where ``ok`` (the portable ``step._insert``): after
     every entry at a distance ``<= t``, the entries behind it moved back by one, the last one dropped. Below
-    instances (``LEVELS > 0``) the entry's chain is the current path (``level`` instances entered)."""
+    instances (``LEVELS > 0``) the entry's chain is the current path (``level`` instances entered). With
+    ``ORDER`` (candidate waves) equal distances are ordered by leaf instead of by arrival."""
     position = tl.zeros((LANES,), tl.int32)
     for j in tl.static_range(MAX_HITS):
         listed = tl.load(hd_ptr + j * n_rays + ray, mask=ok, other=float("inf"))
-        position = position + (listed <= t).to(tl.int32)
+        if ORDER:
+            listed_leaf = tl.load(hl_ptr + j * n_rays + ray, mask=ok, other=0)
+            before = (listed < t) | ((listed == t) & (listed_leaf < leaf) & (listed_leaf >= 0))
+            position = position + before.to(tl.int32)
+        else:
+            position = position + (listed <= t).to(tl.int32)
     for j in tl.static_range(MAX_HITS - 1, 0, -1):
         move = ok & (position < j)
         d = tl.load(hd_ptr + (j - 1) * n_rays + ray, mask=move, other=0.0)
@@ -458,17 +481,18 @@ def _insert_hit(
 def _hit_lists(
     hd_ptr, hl_ptr, hc_ptr, n_rays, ray, votes, active, h0, t0, c0, h1, t1, c1, distance, total, level_base, level,
     MAX_HITS: tl.constexpr, LEVELS: tl.constexpr, LANES: tl.constexpr, BRANCH: tl.constexpr,
+    ORDER: tl.constexpr = False,
 ):  # fmt: skip
     """One step of the ``K`` nearest hits: both leaves into the list (leaf child 0 first), then the bound, the
     ``K``-th distance once more than ``K`` hits are known. Returns ``(distance, total)``."""
     if BRANCH:
         if (votes & 1) != 0:
-            _insert_hit(hd_ptr, hl_ptr, hc_ptr, n_rays, ray, h0, t0, -1 - c0, level_base, level, MAX_HITS, LEVELS, LANES)  # fmt: skip
+            _insert_hit(hd_ptr, hl_ptr, hc_ptr, n_rays, ray, h0, t0, -1 - c0, level_base, level, MAX_HITS, LEVELS, LANES, ORDER)  # fmt: skip
         if (votes & 2) != 0:
-            _insert_hit(hd_ptr, hl_ptr, hc_ptr, n_rays, ray, h1, t1, -1 - c1, level_base, level, MAX_HITS, LEVELS, LANES)  # fmt: skip
+            _insert_hit(hd_ptr, hl_ptr, hc_ptr, n_rays, ray, h1, t1, -1 - c1, level_base, level, MAX_HITS, LEVELS, LANES, ORDER)  # fmt: skip
     else:
-        _insert_hit(hd_ptr, hl_ptr, hc_ptr, n_rays, ray, h0, t0, -1 - c0, level_base, level, MAX_HITS, LEVELS, LANES)
-        _insert_hit(hd_ptr, hl_ptr, hc_ptr, n_rays, ray, h1, t1, -1 - c1, level_base, level, MAX_HITS, LEVELS, LANES)
+        _insert_hit(hd_ptr, hl_ptr, hc_ptr, n_rays, ray, h0, t0, -1 - c0, level_base, level, MAX_HITS, LEVELS, LANES, ORDER)  # fmt: skip
+        _insert_hit(hd_ptr, hl_ptr, hc_ptr, n_rays, ray, h1, t1, -1 - c1, level_base, level, MAX_HITS, LEVELS, LANES, ORDER)  # fmt: skip
     total = total + h0.to(tl.int32) + h1.to(tl.int32)
     full = active & (total > MAX_HITS)
     kth = tl.load(hd_ptr + (MAX_HITS - 1) * n_rays + ray, mask=full, other=0.0)
@@ -818,6 +842,7 @@ def trace_kernel(
     SPHERE: tl.constexpr = False,
     FLAT: tl.constexpr = 0,
     CURVE_BATCH: tl.constexpr = 0,
+    CURSOR: tl.constexpr = False,
 ):
     """Trace ``n_rays`` rays (a multiple of ``LANES``); outputs as :class:`~jaxrt._src.traversal.scene.TraversalResult`.
 
@@ -914,6 +939,9 @@ def trace_kernel(
                 dz = 0.0
         if CURVES:
             cray = curve_ray(rays_ptr, n_rays, ray, ox, oy, oz)
+        if CURSOR:
+            cursor_t = tl.load(rays_ptr + 34 * n_rays + ray)
+            cursor_leaf = tl.load(rays_ptr + 35 * n_rays + ray).to(tl.int32, bitcast=True)
         if CURVE_BATCH > 0:
             # Deferred curve tests: a pending lane keeps its step's children, box results and curve flags.
             pending = tl.zeros((LANES,), tl.int1)
@@ -1063,6 +1091,12 @@ def trace_kernel(
                 h1, t1 = _leaf(tris_ptr, -1 - c1, test1, kx, ky, kz, okx, oky, okz, sx, sy, sz, t_min, distance, facing, key_index, key_weight, key_visible, ox, oy, oz, dx, dy, dz, CULL, LANES, VECTOR, LEVELS, LEAF_KEYS, ANALYTIC)  # fmt: skip
                 if CURVES:
                     h1, t1 = curve_leaf(curves_ptr, -1 - c1, test1, h1, t1, cray, t_min, distance, LANES, PIECES, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE, FLAT)  # fmt: skip
+            if (ANALYTIC & 16) != 0:
+                h0, t0 = _candidate_box(tris_ptr, -1 - c0, test0, near0, h0, t0, LANES)
+                h1, t1 = _candidate_box(tris_ptr, -1 - c1, test1, near1, h1, t1, LANES)
+            if CURSOR:
+                h0, t0 = _past_cursor(h0, t0, -1 - c0, cursor_t, cursor_leaf)
+                h1, t1 = _past_cursor(h1, t1, -1 - c1, cursor_t, cursor_leaf)
             second = t1 < t0
             best_t = tl.where(second, t1, t0)
             best_leaf = tl.where(second, -1 - c1, -1 - c0)
@@ -1072,7 +1106,7 @@ def trace_kernel(
                 if MAX_HITS > 0:
                     distance, total = _hit_lists(
                         hit_distance_ptr, hit_leaf_ptr, hit_chain_ptr, n_rays, ray, votes, stepping, h0, t0, c0, h1,
-                        t1, c1, distance, total, level_base, level, MAX_HITS, LEVELS, LANES, BRANCH,
+                        t1, c1, distance, total, level_base, level, MAX_HITS, LEVELS, LANES, BRANCH, CURSOR,
                     )  # fmt: skip
                     # The first hit (the portable state's leaf, read by the next step's ``found``).
                     leaf = tl.where(stepping, tl.load(hit_leaf_ptr + ray, mask=stepping, other=-1), leaf)
@@ -1092,7 +1126,7 @@ def trace_kernel(
                 if MAX_HITS > 0:
                     distance, total = _hit_lists(
                         hit_distance_ptr, hit_leaf_ptr, hit_chain_ptr, n_rays, ray, votes, stepping, h0, t0, c0, h1,
-                        t1, c1, distance, total, stack_base, 0, MAX_HITS, LEVELS, LANES, BRANCH,
+                        t1, c1, distance, total, stack_base, 0, MAX_HITS, LEVELS, LANES, BRANCH, CURSOR,
                     )  # fmt: skip
                 elif COUNT:
                     total = total + h0.to(tl.int32) + h1.to(tl.int32)
