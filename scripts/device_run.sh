@@ -8,6 +8,8 @@
 #   bash scripts/device_run.sh final    GPU, custom-geometry, query and gradient tests; curve and instancing benches
 #   bash scripts/device_run.sh kernels  custom-geometry bench (kernel rows), curve bench on the ponytail and bear
 #   bash scripts/device_run.sh kerneltests  the analytic, multi-hit and curve kernel tests on the GPU
+#   bash scripts/device_run.sh waves    custom-geometry bench with 4 (and 2, 8) candidates per wave, at 65,536 and
+#                                       1,048,576 rays, then the candidate-wave kernel tests
 #   bash scripts/device_run.sh curvebatch  curve bench with deferred curve tests off and at two thresholds (each row
 #                                          compared bit for bit with the first), then a few curve kernel tests
 set -uo pipefail
@@ -55,6 +57,14 @@ case $part in
   kerneltests)
     step kernel_tests 560 python3 -m pytest tests/test_gpu_analytic.py tests/test_gpu_multihit.py \
       tests/test_gpu_curves.py -q -p no:cacheprovider -rs -k "not interpreter" --durations=10
+    ;;
+  waves)
+    step custom_k4 150 python3 -m jaxrt.bench.custom --json "$out/custom_k4.json"
+    JAXRT_WAVE_CANDIDATES=2 step custom_k2 150 python3 -m jaxrt.bench.custom --json "$out/custom_k2.json"
+    JAXRT_WAVE_CANDIDATES=8 step custom_k8 150 python3 -m jaxrt.bench.custom --json "$out/custom_k8.json"
+    step custom_1m 150 python3 -m jaxrt.bench.custom --rays 1048576 --json "$out/custom_1m.json"
+    step waves_tests 200 python3 -m pytest tests/test_gpu_waves.py -q -p no:cacheprovider -rs --durations=5 \
+      tests/test_gpu_analytic.py::test_user_functions_take_the_kernel_in_candidate_waves -k "not interpreter"
     ;;
   curvebatch)
     step curvebatch 320 python3 -m jaxrt.bench.curves --scenes ponytail bear --settings 8,3 --curve-batch 0 16 8 \
