@@ -8,8 +8,8 @@
 #   bash scripts/device_run.sh final    GPU, custom-geometry, query and gradient tests; curve and instancing benches
 #   bash scripts/device_run.sh kernels  custom-geometry bench (kernel rows), curve bench on the ponytail and bear
 #   bash scripts/device_run.sh kerneltests  the analytic, multi-hit and curve kernel tests on the GPU
-#   bash scripts/device_run.sh waves    custom-geometry bench with 4 (and 2, 8) candidates per wave, at 65,536 and
-#                                       1,048,576 rays, then the candidate-wave kernel tests
+#   bash scripts/device_run.sh waves    the custom bench's table of candidate waves (several candidates per wave) at
+#                                       65,536 and 1,048,576 rays, then the candidate-wave kernel tests
 #   bash scripts/device_run.sh curvebatch  curve bench with deferred curve tests off and at two thresholds (each row
 #                                          compared bit for bit with the first), then a few curve kernel tests
 set -uo pipefail
@@ -59,11 +59,11 @@ case $part in
       tests/test_gpu_curves.py -q -p no:cacheprovider -rs -k "not interpreter" --durations=10
     ;;
   waves)
-    step custom_k4 150 python3 -m jaxrt.bench.custom --json "$out/custom_k4.json"
-    JAXRT_WAVE_CANDIDATES=2 step custom_k2 150 python3 -m jaxrt.bench.custom --json "$out/custom_k2.json"
-    JAXRT_WAVE_CANDIDATES=8 step custom_k8 150 python3 -m jaxrt.bench.custom --json "$out/custom_k8.json"
-    step custom_1m 150 python3 -m jaxrt.bench.custom --rays 1048576 --json "$out/custom_1m.json"
-    step waves_tests 200 python3 -m pytest tests/test_gpu_waves.py -q -p no:cacheprovider -rs --durations=5 \
+    step waves_65k 280 python3 -m jaxrt.bench.custom --waves-only --waves 4,16 4,4 8,32 2,16 16,16 \
+      --json "$out/waves_65k.json"
+    step waves_1m 150 python3 -m jaxrt.bench.custom --waves-only --waves 4,16 8,32 --rays 1048576 \
+      --json "$out/waves_1m.json"
+    step waves_tests 150 python3 -m pytest tests/test_gpu_waves.py -q -p no:cacheprovider -rs --durations=5 \
       tests/test_gpu_analytic.py::test_user_functions_take_the_kernel_in_candidate_waves -k "not interpreter"
     ;;
   curvebatch)

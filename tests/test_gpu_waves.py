@@ -112,6 +112,13 @@ def test_waves_cover_user_code_in_primitive_structures_only():
 # --- the kernel's tests -------------------------------------------------------------------------------------------
 
 
+def few_candidates(monkeypatch, first: int, later: int) -> int:
+    """Candidates per ray in the first wave and in later ones (fewer: more waves); returns ``first``."""
+    monkeypatch.setattr(waves, "CANDIDATES", first)
+    monkeypatch.setattr(waves, "LATER_CANDIDATES", later)
+    return first
+
+
 def _trace(backend: str, ray: rt.Ray, structure, **kw):
     return intersector(backend, **kw).intersect(ray, structure)
 
@@ -124,9 +131,9 @@ def _same(got, want, *, rtol: float = 1e-6) -> None:
 
 
 @kernel_test
-@pytest.mark.parametrize("candidates", [4, 1])
+@pytest.mark.parametrize("candidates", [(4, 16), (1, 1)])
 def test_nearest_against_float64_and_the_portable_path(candidates, kernel_path, monkeypatch):
-    monkeypatch.setattr(waves, "CANDIDATES", candidates)
+    candidates = few_candidates(monkeypatch, *candidates)
     scene = random_scene(3)
     structure = build(scene)
     rays = random_rays(4, scene, RAYS)
@@ -141,9 +148,9 @@ def test_nearest_against_float64_and_the_portable_path(candidates, kernel_path, 
 
 
 @kernel_test
-@pytest.mark.parametrize("candidates", [4, 2])
+@pytest.mark.parametrize("candidates", [(4, 16), (2, 3)])
 def test_any_hit_with_culling_against_float64(candidates, kernel_path, monkeypatch):
-    monkeypatch.setattr(waves, "CANDIDATES", candidates)
+    few_candidates(monkeypatch, *candidates)
     scene = random_scene(5)
     structure = build(scene)
     rays = random_rays(6, scene, RAYS)
@@ -156,10 +163,10 @@ def test_any_hit_with_culling_against_float64(candidates, kernel_path, monkeypat
 
 
 @kernel_test
-@pytest.mark.parametrize("candidates", [4, 1])
+@pytest.mark.parametrize("candidates", [(4, 16), (1, 2)])
 def test_hit_lists_and_counts_equal_the_portable_path(candidates, kernel_path, monkeypatch):
     """``max_hits=3`` (the three nearest accepted hits, their count and overflow) and counting."""
-    monkeypatch.setattr(waves, "CANDIDATES", candidates)
+    few_candidates(monkeypatch, *candidates)
     scene = random_scene(7)
     structure = build(scene)
     ray = random_rays(8, scene, RAYS).ray()

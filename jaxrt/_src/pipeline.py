@@ -218,8 +218,9 @@ def _trace_portable(intersector: Any, view: SceneView, rays: SanitizedRays) -> T
     return _chunked(fn, args, chunk)
 
 
-def _trace_waves(intersector: Any, view: SceneView, rays: SanitizedRays) -> TraversalResult:
-    """The GPU kernel in candidate waves (:mod:`jaxrt._src.traversal.waves`): user functions and filters."""
+def wave_lister(intersector: Any, view: SceneView, rays: SanitizedRays) -> Any:
+    """The GPU kernel's wave for :mod:`jaxrt._src.traversal.waves`: ``(K, t_max, enabled, cursor_t,
+    cursor_leaf) -> TraversalResult`` listing each ray's ``K`` first candidates past its cursor."""
     from jaxrt._src.traversal import gpu
 
     detached = lax.stop_gradient
@@ -228,9 +229,8 @@ def _trace_waves(intersector: Any, view: SceneView, rays: SanitizedRays) -> Trav
     if "bounding_box" in view.kinds:
         analytic = gpu.analytic_leaves(intersector.intersection_functions, view, jnp.float32, candidates=True)
     origin, direction, t_min = (detached(a) for a in (rays.origin, rays.direction, rays.t_min))
-    candidates = waves.CANDIDATES
 
-    def list_candidates(t_max, enabled, cursor_t, cursor_leaf):
+    def list_candidates(k, t_max, enabled, cursor_t, cursor_leaf):
         return gpu.trace_scene(
             scene,
             view.layout,
@@ -242,12 +242,18 @@ def _trace_waves(intersector: Any, view: SceneView, rays: SanitizedRays) -> Trav
             rays.mask,
             any_hit=False,
             cull=intersector.cull,
-            max_hits=candidates,
+            max_hits=k,
             analytic=analytic,
             cursor=(cursor_t, cursor_leaf),
         )
 
-    return waves.trace_waves(intersector, view, rays, list_candidates, candidates=candidates)
+    return list_candidates
+
+
+def _trace_waves(intersector: Any, view: SceneView, rays: SanitizedRays) -> TraversalResult:
+    """The GPU kernel in candidate waves (:mod:`jaxrt._src.traversal.waves`): user functions and filters."""
+    lister = wave_lister(intersector, view, rays)
+    return waves.trace_waves(intersector, view, rays, lister, candidates=waves.CANDIDATES, later=waves.LATER_CANDIDATES)
 
 
 def trace(intersector: Any, view: SceneView, rays: SanitizedRays, host: Any = None) -> TraversalResult:

@@ -5,7 +5,7 @@ Two tables:
 
 1. *Spheres.* The same random spheres as bounding boxes with the built-in analytic intersection function
    (``rt.intersection_functions.sphere``, which the GPU kernel traces itself), as boxes with a user function
-   calling it (traced by the portable traversal), and tessellated to icospheres of 80, 320 and 1280
+   calling it (on the GPU: the kernel lists candidate boxes, JAX calls the function), and tessellated to icospheres of 80, 320 and 1280
    triangles. Mrays/s of camera rays, and the distance error of each against the float64 analytic nearest
    hit (median and max relative error over rays where both hit, and rays whose hit/miss differs from the
    reference).
@@ -16,7 +16,10 @@ Two tables:
    portable one).
 
 Flags: ``--quick`` (tiny sizes, one repeat), ``--spheres``, ``--triangles``, ``--rays``, ``--repeats``,
-``--json PATH``. Only jax and numpy are needed.
+``--json PATH``; ``--waves K,LATER ...`` adds a third table (``--waves-only``: only it): the alpha filter and
+the user sphere function with ``K`` candidates per ray in the first wave and ``LATER`` in the others, each
+with the rays still active before each wave (``jaxrt._src.traversal.waves``), and the opaque mesh as
+reference. Only jax and numpy are needed.
 """
 
 from __future__ import annotations
@@ -203,6 +206,68 @@ def bench_filters(triangles: int, n_rays: int, repeats: int, seed: int = 0) -> l
     return rows
 
 
+def wave_counts(intersector: rt.Intersector, structure: Any, rays: rt.Ray, first: int, later: int) -> list[int]:
+    """The rays still active before each candidate wave (:mod:`jaxrt._src.traversal.waves`), wave by wave."""
+    from jaxrt._src.scene_view import scene_view
+    from jaxrt._src.traversal import waves
+
+    view = scene_view(structure)
+    sanitized = pipeline.SanitizedRays(rays)
+    loop = waves.WaveLoop(intersector, view, sanitized, pipeline.wave_lister(intersector, view, sanitized))
+    step = jax.jit(loop.wave, static_argnums=1)
+    state, counts = loop.initial(), []
+    while int(jnp.sum(state.active)) and len(counts) < 64:
+        counts.append(int(jnp.sum(state.active)))
+        state = step(state, first if len(counts) == 1 else later)
+    return counts
+
+
+def bench_waves(triangles: int, spheres: int, n_rays: int, repeats: int, settings: Sequence[tuple[int, int]],
+                seed: int = 0) -> list[dict[str, Any]]:  # fmt: skip
+    """The alpha filter and the user sphere function with ``(K, LATER)`` candidates per wave: speed, and the
+    active rays before each wave."""
+    from jaxrt._src.traversal import waves
+
+    vertices, indices = noisy_sphere(triangles, seed)
+    alpha = np.random.default_rng(seed).uniform(0, 1, indices.shape[0]).astype(np.float32)
+    mesh = rt.TriangleGeometry(vertices, indices, opaque=False, primitive_data={"alpha": alpha})
+    center, radius = random_spheres(spheres, seed)
+    lower, upper = rt.intersection_functions.sphere_bounds(center.astype(np.float32), radius.astype(np.float32))
+    data = {"center": center.astype(np.float32), "radius": radius.astype(np.float32)}
+    boxes = rt.BoundingBoxGeometry(lower, upper, primitive_data=data)
+
+    def user_sphere(ray, candidate):
+        return rt.intersection_functions.sphere(ray, candidate)
+
+    camera = rt.shading.pinhole_rays(
+        *(2 * [max(1, int(round(n_rays**0.5)))]), eye=(0.0, 0.5, 4.0), target=(0.0, 0.0, 0.0), fov_degrees=40.0
+    ).reshape(-1)
+    cases = [
+        ("alpha filter (~50% rejected)", rt.Intersector(filter=lambda c: c.primitive_data["alpha"] >= 0.5),
+         rt.build_primitive_structure(mesh), camera_rays(n_rays).reshape(-1)),
+        ("user sphere function", rt.Intersector(intersection_functions={0: user_sphere}),
+         rt.build_primitive_structure(boxes), camera),
+        ("opaque reference (no waves)", rt.Intersector(), rt.build_primitive_structure(
+            rt.TriangleGeometry(vertices, indices)), camera_rays(n_rays).reshape(-1)),
+    ]  # fmt: skip
+    rows = []
+    saved = waves.CANDIDATES, waves.LATER_CANDIDATES
+    try:
+        for first, later in settings:
+            waves.CANDIDATES, waves.LATER_CANDIDATES = first, later
+            jax.clear_caches()
+            for name, intersector, structure, rays in cases:
+                trace, _ = _trace(intersector, structure, rays, repeats)
+                path = traversal_path(intersector, structure)
+                uses_waves = "waves" not in name and path == "gpu kernel"  # elsewhere: the portable traversal
+                counts = wave_counts(intersector, structure, rays, first, later) if uses_waves else []
+                rows.append({"case": name, "candidates": [first, later], "trace": trace, "active_per_wave": counts,
+                             "path": path})  # fmt: skip
+    finally:
+        waves.CANDIDATES, waves.LATER_CANDIDATES = saved
+    return rows
+
+
 def format_tables(results: dict[str, Any]) -> str:
     """Both tables as Markdown."""
     lines = ["| spheres as | primitives | build Mprims/s | Mrays/s | hits | hit/miss vs ref | median rel err | max rel err | traversal |",
@@ -216,6 +281,16 @@ def format_tables(results: dict[str, Any]) -> str:
     lines += ["", "| filter case | Mrays/s | hits | traversal |", "|---|---|---|---|"]
     for r in results["filters"]:
         lines.append(f"| {r['case']} | {r['trace']['mrays_s']:.3f} | {r['hits']:,} | {r.get('path', '')} |")
+    if results.get("waves"):
+        lines += [
+            "",
+            "| case | K, later | Mrays/s | active rays before each wave | traversal |",
+            "|---|---|---|---|---|",
+        ]
+        for r in results["waves"]:
+            k, later = r["candidates"]
+            counts = ", ".join(f"{c:,}" for c in r["active_per_wave"]) or "-"
+            lines.append(f"| {r['case']} | {k}, {later} | {r['trace']['mrays_s']:.3f} | {counts} | {r['path']} |")
     return "\n".join(lines)
 
 
@@ -228,6 +303,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--quick", action="store_true", help="tiny sizes and one repeat: a smoke test")
     parser.add_argument("--json", metavar="PATH", help="also write every number and the machine info to PATH")
+    parser.add_argument("--waves", nargs="+", metavar="K,LATER",
+                        help="also a table of candidate waves with these candidates per ray (first wave, later ones)")  # fmt: skip
+    parser.add_argument("--waves-only", action="store_true", help="only the table of candidate waves")
     return parser
 
 
@@ -238,9 +316,19 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     results = {
         "machine": machine_info(),
         "config": {k: sizes[k] for k in ("spheres", "triangles", "rays", "repeats", "seed")},
-        "spheres": bench_spheres(sizes["spheres"], sizes["rays"], sizes["repeats"], args.seed),
-        "filters": bench_filters(sizes["triangles"], sizes["rays"], sizes["repeats"], args.seed),
+        "spheres": []
+        if args.waves_only
+        else bench_spheres(sizes["spheres"], sizes["rays"], sizes["repeats"], args.seed),
+        "filters": []
+        if args.waves_only
+        else bench_filters(sizes["triangles"], sizes["rays"], sizes["repeats"], args.seed),
     }
+    if args.waves or args.waves_only:
+        settings = [tuple(int(x) for x in setting.split(",")) for setting in (args.waves or ["4,16"])]
+        settings = [(s[0], s[-1]) for s in settings]
+        results["waves"] = bench_waves(
+            sizes["triangles"], sizes["spheres"], sizes["rays"], sizes["repeats"], settings, args.seed
+        )
     print(format_tables(results))
     if args.json:
         with open(args.json, "w") as f:

@@ -30,7 +30,8 @@ between waves, and with ``K`` candidates a wave most rays need only one (see doc
 from __future__ import annotations
 
 import os
-from typing import Any
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -41,11 +42,19 @@ from jaxrt._src.traversal import step
 from jaxrt._src.traversal.scene import TraversalResult
 from jaxrt._src.traversal.step import HitList
 
-__all__ = ["CANDIDATES", "needs_waves", "trace_waves"]
+__all__ = ["CANDIDATES", "LATER_CANDIDATES", "WaveLoop", "WaveState", "needs_waves", "trace_waves"]
 
-#: Candidates listed per ray and wave (the kernel's ``max_hits``); ``JAXRT_WAVE_CANDIDATES`` (read at import)
-#: overrides it for benches.
-CANDIDATES = int(os.environ.get("JAXRT_WAVE_CANDIDATES", "4"))
+
+def _candidate_counts(setting: str) -> tuple[int, int]:
+    """``"K"`` or ``"K,LATER"`` as ``(K, LATER)`` (``LATER = K`` when it is not given)."""
+    counts = [int(part) for part in setting.split(",")]
+    return counts[0], counts[-1]
+
+
+#: Candidates listed per ray in the first wave (the kernel's ``max_hits``), and in each later one: few rays
+#: need those, and more candidates per wave end the tail in fewer waves. ``JAXRT_WAVE_CANDIDATES`` (``K`` or
+#: ``K,LATER``, read at import) overrides them for benches.
+CANDIDATES, LATER_CANDIDATES = _candidate_counts(os.environ.get("JAXRT_WAVE_CANDIDATES", "4,16"))
 
 
 def needs_waves(intersector: Any, view: Any) -> bool:
@@ -61,96 +70,139 @@ def needs_waves(intersector: Any, view: Any) -> bool:
     return any(not analytic.shape_code(fn) for _, fn in functions)
 
 
+class WaveState(NamedTuple):
+    """The loop state of every ray between waves."""
+
+    hit_t: jax.Array  # (n, kept) accepted distances so far, sorted (inf past the last)
+    hit_leaf: jax.Array  # (n, kept) their leaves (-1 past the last)
+    total: jax.Array  # (n,) accepted hits so far
+    cursor_t: jax.Array  # (n,) the last candidate listed: distance
+    cursor_leaf: jax.Array  # (n,) and leaf
+    active: jax.Array  # (n,) the ray needs another wave
+    visited: jax.Array  # (n,) nodes visited over all waves
+    tested: jax.Array  # (n,) primitives tested over all waves
+
+
+class WaveLoop:
+    """One batch of rays in candidate waves: :meth:`initial`, :meth:`wave` (any number of times, each with
+    its own ``K``) and :meth:`result`; :func:`trace_waves` composes them."""
+
+    def __init__(self, intersector: Any, view: Any, rays: Any, list_candidates: Callable):
+        self.tester = leaf_tests.leaf_tester(intersector, view)
+        self.origin, self.direction, self.t_min = (
+            lax.stop_gradient(a) for a in (rays.origin, rays.direction, rays.t_min)
+        )
+        self.enabled = rays.enabled
+        self.list_candidates = list_candidates
+        self.count_all = bool(intersector.counts_all)
+        self.listing = intersector.max_hits is not None and not self.count_all
+        self.kept = int(intersector.max_hits) if self.listing else 1
+        self.any_hit = bool(intersector.accept_any_intersection)
+        self.dtype = rays.t_max.dtype
+        self.start = jnp.where(rays.enabled, lax.stop_gradient(rays.t_max), -jnp.inf).astype(self.dtype)
+
+    def initial(self) -> WaveState:
+        n, dtype = self.origin.shape[0], self.dtype
+        zeros = jnp.zeros((n,), jnp.int32)
+        return WaveState(
+            jnp.full((n, self.kept), jnp.inf, dtype),
+            jnp.full((n, self.kept), -1, jnp.int32),
+            zeros,
+            jnp.full((n,), -jnp.inf, dtype),
+            jnp.full((n,), -1, jnp.int32),
+            self.enabled,
+            zeros,
+            zeros,
+        )
+
+    def bound(self, hit_t: jax.Array, total: jax.Array) -> jax.Array:
+        """Each ray's distance bound: its nearest accepted hit (the ``kept``-th once more are known, as the
+        portable hit list culls; never lowered when counting)."""
+        if self.count_all:
+            return self.start
+        if self.listing:
+            return jnp.where(total > self.kept, hit_t[:, self.kept - 1], self.start)
+        return jnp.where(total > 0, hit_t[:, 0], self.start)
+
+    def _decide(self, leaves: jax.Array, valid: jax.Array, bound: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """The portable leaf tests (filter, intersection functions) on each ray's listed candidates."""
+        tester = self.tester
+
+        def one(origin, direction, t_min, t_max, leaf):
+            return tester(step.prepare(tester, origin, direction, None, None), leaf, t_min, t_max)
+
+        ok, t = jax.vmap(one)(self.origin, self.direction, self.t_min, bound, jnp.where(valid, leaves, -1))
+        ok = ok & valid
+        return ok, jnp.where(ok, t, jnp.inf).astype(self.dtype)
+
+    def wave(self, state: WaveState, k: int) -> WaveState:
+        """List ``k`` candidates per active ray, decide them, merge, and move the cursors."""
+        bound = self.bound(state.hit_t, state.total)
+        found = self.list_candidates(k, bound, state.active, state.cursor_t, state.cursor_leaf)
+        listed = found.hits
+        valid = state.active[:, None] & (jnp.arange(k)[None, :] < jnp.minimum(listed.total, k)[:, None])
+        ok, t = self._decide(listed.leaf, valid, bound)
+        total = state.total + jnp.sum(ok, axis=1, dtype=jnp.int32)
+        hit_t, hit_leaf = state.hit_t, state.hit_leaf
+        if not self.count_all:  # merge: earlier hits first, then this wave's in candidate order (a stable sort)
+            all_t = jnp.concatenate([hit_t, t], axis=1)
+            all_leaf = jnp.concatenate([hit_leaf, jnp.where(ok, listed.leaf, -1)], axis=1)
+            order = jnp.argsort(all_t, axis=1, stable=True)[:, : self.kept]
+            hit_t = jnp.take_along_axis(all_t, order, axis=1)
+            hit_leaf = jnp.take_along_axis(all_leaf, order, axis=1)
+        last_t, last_leaf = listed.distance[:, k - 1], listed.leaf[:, k - 1]
+        more = state.active & (listed.total > k) & (last_t <= self.bound(hit_t, total))
+        if self.any_hit:
+            more = more & (total == 0)
+        return WaveState(
+            hit_t,
+            hit_leaf,
+            total,
+            jnp.where(more, last_t, state.cursor_t),
+            jnp.where(more, last_leaf, state.cursor_leaf),
+            more,
+            state.visited + jnp.where(state.active, found.nodes_visited, 0),
+            state.tested + jnp.where(state.active, found.primitives_tested, 0),
+        )
+
+    def result(self, state: WaveState) -> TraversalResult:
+        """The portable traversal's :class:`TraversalResult` of the accepted hits."""
+        n = state.total.shape[0]
+        overflow = jnp.zeros((n,), bool)
+        levels = jnp.zeros((n, 0), jnp.int32)
+        if self.count_all:
+            hits = HitList(jnp.zeros((n, 0), self.dtype), jnp.zeros((n, 0), jnp.int32), state.total)
+            no_leaf = jnp.full((n,), -1, jnp.int32)
+            return TraversalResult(self.start, no_leaf, levels, state.visited, state.tested, overflow, hits)
+        if self.listing:  # the result's distance is the list's bound, as in the portable traversal
+            distance, hits = self.bound(state.hit_t, state.total), HitList(state.hit_t, state.hit_leaf, state.total)
+        else:
+            distance, hits = jnp.where(state.total > 0, state.hit_t[:, 0], self.start), None
+        return TraversalResult(distance, state.hit_leaf[:, 0], levels, state.visited, state.tested, overflow, hits)
+
+
 def trace_waves(
     intersector: Any,
     view: Any,
     rays: Any,
-    list_candidates: Any,
+    list_candidates: Callable,
     *,
-    candidates: int,
+    candidates: int = CANDIDATES,
+    later: int = LATER_CANDIDATES,
 ) -> TraversalResult:
-    """The portable traversal's result for ``rays`` (a ``SanitizedRays``, detached) through the primitive
-    structure of ``view``, in candidate waves.
+    """The portable traversal's result for ``rays`` (a ``SanitizedRays``) through the primitive structure of
+    ``view``, in candidate waves: the first with ``candidates`` per ray, the rest (few rays) with ``later``.
 
     Args:
       intersector: its filter, intersection functions, cull mode and query (nearest, any, ``max_hits``,
         counting) decide.
       view: the scene view (a primitive structure without keyframe motion).
       rays: the flat ray batch.
-      list_candidates: ``(t_max, enabled, cursor_t, cursor_leaf) -> TraversalResult`` whose ``hits`` are each
-        ray's ``candidates`` first candidates past its cursor (the kernel's wave).
-      candidates: static ``K``.
+      list_candidates: ``(K, t_max, enabled, cursor_t, cursor_leaf) -> TraversalResult`` whose ``hits`` are
+        each ray's ``K`` first candidates past its cursor (the kernel's wave; ``K`` static).
+      candidates, later: static ``K`` of the first wave and of the others.
     """
-    tester = leaf_tests.leaf_tester(intersector, view)
-    origin, direction, t_min = (lax.stop_gradient(a) for a in (rays.origin, rays.direction, rays.t_min))
-    n = origin.shape[0]
-    k = candidates
-    count_all = bool(intersector.counts_all)
-    kept = 1 if intersector.max_hits is None or count_all else int(intersector.max_hits)
-    listing = intersector.max_hits is not None and not count_all
-    any_hit = bool(intersector.accept_any_intersection)
-    dtype = rays.t_max.dtype
-    start = jnp.where(rays.enabled, lax.stop_gradient(rays.t_max), -jnp.inf).astype(dtype)
-
-    def bound_of(hit_t, total):
-        if count_all:
-            return start
-        if listing:  # the portable list culls by the K-th distance once more than K hits are known
-            return jnp.where(total > kept, hit_t[:, kept - 1], start)
-        return jnp.where(total > 0, hit_t[:, 0], start)
-
-    def decide(leaves, valid, bound):
-        def one(origin, direction, t_min, t_max, leaf):
-            context = step.prepare(tester, origin, direction, None, None)
-            return tester(context, leaf, t_min, t_max)
-
-        ok, t = jax.vmap(one)(origin, direction, t_min, bound, jnp.where(valid, leaves, -1))
-        ok = ok & valid
-        return ok, jnp.where(ok, t, jnp.inf).astype(dtype)
-
-    def body(state):
-        hit_t, hit_leaf, total, cursor_t, cursor_leaf, active, visited, tested, waves = state
-        bound = bound_of(hit_t, total)
-        found = list_candidates(bound, active, cursor_t, cursor_leaf)
-        listed = found.hits
-        index = jnp.arange(k)
-        valid = active[:, None] & (index[None, :] < jnp.minimum(listed.total, k)[:, None])
-        ok, t = decide(listed.leaf, valid, bound)
-        total = total + jnp.sum(ok, axis=1, dtype=jnp.int32)
-        if not count_all:  # merge: earlier hits first, then this wave's in candidate order (a stable sort)
-            all_t = jnp.concatenate([hit_t, t], axis=1)
-            all_leaf = jnp.concatenate([hit_leaf, jnp.where(ok, listed.leaf, -1)], axis=1)
-            order = jnp.argsort(all_t, axis=1, stable=True)[:, :kept]
-            hit_t = jnp.take_along_axis(all_t, order, axis=1)
-            hit_leaf = jnp.take_along_axis(all_leaf, order, axis=1)
-        last_t, last_leaf = listed.distance[:, k - 1], listed.leaf[:, k - 1]
-        more = active & (listed.total > k) & (last_t <= bound_of(hit_t, total))
-        if any_hit:
-            more = more & (total == 0)
-        cursor_t = jnp.where(more, last_t, cursor_t)
-        cursor_leaf = jnp.where(more, last_leaf, cursor_leaf)
-        visited = visited + jnp.where(active, found.nodes_visited, 0)
-        tested = tested + jnp.where(active, found.primitives_tested, 0)
-        return hit_t, hit_leaf, total, cursor_t, cursor_leaf, more, visited, tested, waves + 1
-
-    zeros = jnp.zeros((n,), jnp.int32)
-    state = (
-        jnp.full((n, kept), jnp.inf, dtype),
-        jnp.full((n, kept), -1, jnp.int32),
-        zeros,
-        jnp.full((n,), -jnp.inf, dtype),
-        jnp.full((n,), -1, jnp.int32),
-        rays.enabled,
-        zeros,
-        zeros,
-        jnp.zeros((), jnp.int32),
-    )
-    hit_t, hit_leaf, total, *_, visited, tested, _ = lax.while_loop(lambda s: jnp.any(s[5]), body, state)
-    overflow = jnp.zeros((n,), bool)
-    levels = jnp.zeros((n, 0), jnp.int32)
-    if count_all:
-        hits = HitList(jnp.zeros((n, 0), dtype), jnp.zeros((n, 0), jnp.int32), total)
-        return TraversalResult(start, jnp.full((n,), -1, jnp.int32), levels, visited, tested, overflow, hits)
-    distance = jnp.where(total > 0, hit_t[:, 0], start) if not listing else bound_of(hit_t, total)
-    hits = HitList(hit_t, hit_leaf, total) if listing else None
-    return TraversalResult(distance, hit_leaf[:, 0], levels, visited, tested, overflow, hits)
+    loop = WaveLoop(intersector, view, rays, list_candidates)
+    state = loop.wave(loop.initial(), candidates)
+    state = lax.while_loop(lambda s: jnp.any(s.active), lambda s: loop.wave(s, later), state)
+    return loop.result(state)
