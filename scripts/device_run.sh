@@ -59,9 +59,9 @@ case $part in
       tests/test_gpu_curves.py -q -p no:cacheprovider -rs -k "not interpreter" --durations=10
     ;;
   waves)
-    step waves_65k 280 python3 -m jaxrt.bench.custom --waves-only --waves 4,16 4,4 8,32 2,16 16,16 \
+    step waves_65k 300 python3 -m jaxrt.bench.custom --waves-only --repeats 20 --waves 1,1 1,4 2,8 4,16 16,16 \
       --json "$out/waves_65k.json"
-    step waves_1m 150 python3 -m jaxrt.bench.custom --waves-only --waves 4,16 8,32 --rays 1048576 \
+    step waves_1m 200 python3 -m jaxrt.bench.custom --waves-only --repeats 10 --waves 1,4 4,16 --rays 1048576 \
       --json "$out/waves_1m.json"
     step waves_tests 150 python3 -m pytest tests/test_gpu_waves.py -q -p no:cacheprovider -rs --durations=5 \
       tests/test_gpu_analytic.py::test_user_functions_take_the_kernel_in_candidate_waves -k "not interpreter"

@@ -25,6 +25,7 @@ reference. Only jax and numpy are needed.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 from collections.abc import Sequence
@@ -206,19 +207,25 @@ def bench_filters(triangles: int, n_rays: int, repeats: int, seed: int = 0) -> l
     return rows
 
 
-def wave_counts(intersector: rt.Intersector, structure: Any, rays: rt.Ray, first: int, later: int) -> list[int]:
-    """The rays still active before each candidate wave (:mod:`jaxrt._src.traversal.waves`), wave by wave."""
+@functools.partial(jax.jit, static_argnums=(0, 4))
+def _wave(intersector: rt.Intersector, structure: Any, rays: rt.Ray, state: Any, k: int) -> Any:
+    """One candidate wave of ``k`` per ray (the first when ``state`` is ``None``)."""
     from jaxrt._src.scene_view import scene_view
     from jaxrt._src.traversal import waves
 
     view = scene_view(structure)
     sanitized = pipeline.SanitizedRays(rays)
     loop = waves.WaveLoop(intersector, view, sanitized, pipeline.wave_lister(intersector, view, sanitized))
-    step = jax.jit(loop.wave, static_argnums=1)
-    state, counts = loop.initial(), []
+    return loop.wave(loop.initial() if state is None else state, k)
+
+
+def wave_counts(intersector: rt.Intersector, structure: Any, rays: rt.Ray, first: int, later: int) -> list[int]:
+    """The rays still active before each candidate wave (:mod:`jaxrt._src.traversal.waves`), wave by wave."""
+    counts = [int(jnp.sum(pipeline.SanitizedRays(rays).enabled))]
+    state = _wave(intersector, structure, rays, None, first)
     while int(jnp.sum(state.active)) and len(counts) < 64:
         counts.append(int(jnp.sum(state.active)))
-        state = step(state, first if len(counts) == 1 else later)
+        state = _wave(intersector, structure, rays, state, later)
     return counts
 
 

@@ -347,13 +347,13 @@ def _slab(
     FAR_SCALE: tl.constexpr,
     PARALLEL: tl.constexpr,
 ):
-    """Conservative slab test of one child box: ``(hit, t_near)``."""
+    """Conservative slab test of one child box: ``(hit, t_near, t_far)``."""
     near_x, far_x = _axis(lo_x, hi_x, ox, ix, PARALLEL)
     near_y, far_y = _axis(lo_y, hi_y, oy, iy, PARALLEL)
     near_z, far_z = _axis(lo_z, hi_z, oz, iz, PARALLEL)
     near = tl.maximum(tl.maximum(tl.maximum(near_x, near_y), near_z), t_min)
     far = tl.minimum(tl.minimum(tl.minimum(far_x, far_y), far_z) * FAR_SCALE, t_max)
-    return (near <= far) & (lo_x <= hi_x), near
+    return (near <= far) & (lo_x <= hi_x), near, far
 
 
 @triton.jit
@@ -976,14 +976,19 @@ def trace_kernel(
                 c0f, c1f, _, _ = _quad(nodes_ptr, node, 16, 12, fresh, LANES, VECTOR)
             c0 = c0f.to(tl.int32, bitcast=True)
             c1 = c1f.to(tl.int32, bitcast=True)
-            hit0, near0 = _slab(
+            hit0, near0, far0 = _slab(
                 lo0x, hi0x, lo0y, hi0y, lo0z, hi0z, ox, oy, oz, ix, iy, iz, t_min, distance, FAR_SCALE, PARALLEL
             )
-            hit1, near1 = _slab(
+            hit1, near1, far1 = _slab(
                 lo1x, hi1x, lo1y, hi1y, lo1z, hi1z, ox, oy, oz, ix, iy, iz, t_min, distance, FAR_SCALE, PARALLEL
             )
             hit0 = hit0 & fresh
             hit1 = hit1 & fresh
+            if CURSOR:
+                # A box that ends before the cursor holds no candidate past it (a triangle's distance and a box
+                # leaf's entry lie in its slab interval): culled. Entry distances stay those of t_min.
+                hit0 = hit0 & (far0 >= cursor_t)
+                hit1 = hit1 & (far1 >= cursor_t)
             if CURVE_BATCH > 0:
                 c0 = tl.where(pending, kept_c0, c0)
                 c1 = tl.where(pending, kept_c1, c1)
@@ -1279,10 +1284,10 @@ def trace_wide_kernel(
             r1 = r1f.to(tl.int32, bitcast=True)
             r2 = r2f.to(tl.int32, bitcast=True)
             r3 = r3f.to(tl.int32, bitcast=True)
-            h0, n0 = _slab(lo_x0, hi_x0, lo_y0, hi_y0, lo_z0, hi_z0, ox, oy, oz, ix, iy, iz, t_min, distance, FAR_SCALE, PARALLEL)  # fmt: skip
-            h1, n1 = _slab(lo_x1, hi_x1, lo_y1, hi_y1, lo_z1, hi_z1, ox, oy, oz, ix, iy, iz, t_min, distance, FAR_SCALE, PARALLEL)  # fmt: skip
-            h2, n2 = _slab(lo_x2, hi_x2, lo_y2, hi_y2, lo_z2, hi_z2, ox, oy, oz, ix, iy, iz, t_min, distance, FAR_SCALE, PARALLEL)  # fmt: skip
-            h3, n3 = _slab(lo_x3, hi_x3, lo_y3, hi_y3, lo_z3, hi_z3, ox, oy, oz, ix, iy, iz, t_min, distance, FAR_SCALE, PARALLEL)  # fmt: skip
+            h0, n0, _ = _slab(lo_x0, hi_x0, lo_y0, hi_y0, lo_z0, hi_z0, ox, oy, oz, ix, iy, iz, t_min, distance, FAR_SCALE, PARALLEL)  # fmt: skip
+            h1, n1, _ = _slab(lo_x1, hi_x1, lo_y1, hi_y1, lo_z1, hi_z1, ox, oy, oz, ix, iy, iz, t_min, distance, FAR_SCALE, PARALLEL)  # fmt: skip
+            h2, n2, _ = _slab(lo_x2, hi_x2, lo_y2, hi_y2, lo_z2, hi_z2, ox, oy, oz, ix, iy, iz, t_min, distance, FAR_SCALE, PARALLEL)  # fmt: skip
+            h3, n3, _ = _slab(lo_x3, hi_x3, lo_y3, hi_y3, lo_z3, hi_z3, ox, oy, oz, ix, iy, iz, t_min, distance, FAR_SCALE, PARALLEL)  # fmt: skip
             h0 = h0 & active
             h1 = h1 & active
             h2 = h2 & active
