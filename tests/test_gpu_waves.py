@@ -197,3 +197,75 @@ def test_inside_jit_and_vmap(kernel_path):
     got = jax.tree_util.tree_map(lambda a: a.reshape(-1, *a.shape[2:]), got)
     _same(got, _trace("portable", rays.ray(), structure))
     assert INTERPRETED or ON_GPU
+
+
+# --- filters that read only the primitive -------------------------------------------------------------------------
+
+
+BUILT_IN = {
+    SPHERES: rt.intersection_functions.sphere,
+    DISKS: rt.intersection_functions.disk,
+    CYLINDERS: rt.intersection_functions.capped_cylinder,
+}
+
+
+def primitive_filter(candidate: rt.TriangleCandidate):
+    """Rejects the primitives whose cutoff rejects everything (reads the primitive data only)."""
+    return candidate.primitive_data["cutoff"] < 1.0
+
+
+def test_filters_that_read_the_hit_are_called_per_candidate():
+    """Only a filter whose decision cannot depend on the distance, barycentrics or facing is decided per
+    primitive (the jaxpr is followed conservatively)."""
+    from jaxrt._src import filter_states
+    from jaxrt._src.scene_view import scene_view
+
+    view = scene_view(build(random_scene(11)))
+    candidate = filter_states._candidate(view, np.int32(0), view.leaves.primitive_data)
+    assert filter_states.reads_only_primitive(primitive_filter, candidate)
+    assert filter_states.reads_only_primitive(lambda c: c.primitive_id % 3 != c.geometry_id, candidate)
+    assert not filter_states.reads_only_primitive(alpha_filter, candidate)  # the texture at the barycentrics
+    assert not filter_states.reads_only_primitive(lambda c: c.distance > 1.0, candidate)
+    assert not filter_states.reads_only_primitive(lambda c: c.front_facing & (c.primitive_id > 2), candidate)
+    rejected = filter_states.rejected_leaves(rt.Intersector(filter=primitive_filter), view)
+    cutoff = np.asarray(view.leaves.primitive_data["cutoff"])
+    non_opaque = np.asarray(view.leaf_flag(view.slot_table((1,)), np.arange(cutoff.shape[0])))
+    np.testing.assert_array_equal(np.asarray(rejected), non_opaque & (cutoff >= 1.0))
+    assert np.asarray(rejected).any()
+    assert filter_states.rejected_leaves(rt.Intersector(filter=alpha_filter), view) is None
+
+
+@kernel_test
+@pytest.mark.parametrize("query", ["nearest", "any", "max_hits", "count"])
+def test_filters_that_read_the_primitive_take_one_launch(query, kernel_path):
+    """Decided once per primitive: one launch (no waves), and the portable path's results."""
+    scene = random_scene(12)
+    structure = build(scene)
+    ray = random_rays(13, scene, RAYS).ray()
+    kw = {"nearest": {}, "any": {"accept_any_intersection": True}, "max_hits": {"max_hits": 3}}.get(query, {})
+
+    def run(backend):
+        inter = rt.Intersector(
+            rt.tags.primitive_data, intersection_functions=BUILT_IN, filter=primitive_filter, backend=backend, **kw
+        )
+        if query == "count":
+            return rt.count_intersections(ray, structure, inter)
+        return inter.intersect(ray, structure)
+
+    LAUNCHES.clear()
+    got, want = run("gpu"), run("portable")
+    if not ON_GPU:
+        assert len(LAUNCHES) == 1
+    if query == "count":
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+        assert np.asarray(want).max() >= 2
+        return
+    fields = ("type",) if query == "any" else ("type", "geometry_id", "primitive_id")
+    fields += ("hit_count", "hit_overflow") if query == "max_hits" else ()
+    for name in fields:
+        np.testing.assert_array_equal(np.asarray(got[name]), np.asarray(want[name]), err_msg=name)
+    if query != "any":  # the kernel's capped cylinder rounds differently (CYLINDER_RTOL, test_gpu_analytic.py)
+        cylinder = np.asarray(want.geometry_id) == CYLINDERS
+        for part, rtol in ((cylinder, 1e-3), (~cylinder, 1e-6)):
+            np.testing.assert_allclose(np.asarray(got.distance)[part], np.asarray(want.distance)[part], rtol=rtol)
+    assert (np.asarray(want.type) == int(rt.IntersectionType.TRIANGLE)).sum() > 10

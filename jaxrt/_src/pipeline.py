@@ -19,6 +19,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from jaxrt._src import fields as result_fields
+from jaxrt._src import filter_states
 from jaxrt._src import leaves as leaf_tests
 from jaxrt._src.numerics import full_precision
 from jaxrt._src.ray import Ray
@@ -275,13 +276,22 @@ def trace(intersector: Any, view: SceneView, rays: SanitizedRays, host: Any = No
         if intersector.max_hits is not None or intersector.counts_all:
             moving.update(max_hits=0 if intersector.counts_all else intersector.max_hits)
             moving.update(count_all=intersector.counts_all)
-        if backend == "gpu" and waves.needs_waves(intersector, view):  # user code per candidate
-            return _trace_waves(intersector, view, rays)
+        scene = jax.tree_util.tree_map(detached, view.traversal)
+        if backend == "gpu":
+            # A filter that reads only the primitive is decided once per primitive: accepted ones are traced as
+            # opaque, rejected ones not at all (filter_states); other user code per candidate in waves.
+            rejected = filter_states.rejected_leaves(intersector, view)
+            if waves.needs_waves(intersector, view, filter_decided=rejected is not None):
+                return _trace_waves(intersector, view, rays)
+            if rejected is not None:
+                no_triangle = jnp.zeros((), scene.leaf_triangle.dtype)
+                triangles = jnp.where(rejected[:, None, None], no_triangle, scene.leaf_triangle)
+                scene = scene._replace(leaf_triangle=triangles, kernel_layout=None)
         if "bounding_box" in view.kinds:  # built-in functions (kernel_declines)
             dtype = view.traversal.node_lower.dtype if backend == "cpu" else jnp.float32
             moving.update(analytic=gpu.analytic_leaves(intersector.intersection_functions, view, dtype))
         return (cpu if backend == "cpu" else gpu).trace_scene(
-            jax.tree_util.tree_map(detached, view.traversal),
+            scene,
             view.layout,
             *(detached(a) for a in (rays.origin, rays.direction, rays.t_min, rays.t_max)),
             rays.enabled,

@@ -57,12 +57,13 @@ def _candidate_counts(setting: str) -> tuple[int, int]:
 CANDIDATES, LATER_CANDIDATES = _candidate_counts(os.environ.get("JAXRT_WAVE_CANDIDATES", "4,16"))
 
 
-def needs_waves(intersector: Any, view: Any) -> bool:
+def needs_waves(intersector: Any, view: Any, *, filter_decided: bool = False) -> bool:
     """Whether tracing ``view`` with ``intersector`` calls user code per candidate: a filter on non-opaque
-    triangles, or a bounding-box function that is not one of the built-in ``rt.intersection_functions``."""
+    triangles (unless ``filter_decided``: decided per primitive, :mod:`jaxrt._src.filter_states`), or a
+    bounding-box function that is not one of the built-in ``rt.intersection_functions``."""
     from jaxrt._src.primitives import analytic
 
-    if leaf_tests.filtered_slots(intersector, view):
+    if leaf_tests.filtered_slots(intersector, view) and not filter_decided:
         return True
     if "bounding_box" not in view.kinds:
         return False
