@@ -288,8 +288,7 @@ def kernel_call(
     )
     batched = config.curves and levels == 0 and options.leaf_branch
     params.update(CURVE_BATCH=min(options.curve_batch, lanes) if batched else 0)
-    if config.cursor:
-        params.update(CURSOR=True)
+    params.update(CURSOR=config.cursor)
     k = config.max_hits
     extra = (
         jax.ShapeDtypeStruct((max(1, levels * size),), jnp.int32),  # instance chain, (levels, size)
