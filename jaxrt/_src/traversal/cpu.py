@@ -60,6 +60,8 @@ _FLOAT_ARGS = (0, 1, 3, 4, 8, 9, 10, 11, 12)
 CHUNK = 32
 #: Fewest rays per thread worth starting one.
 MIN_TASK = 256
+#: Fewest rays worth sorting into a coherent order (:func:`_order`).
+SORT_MIN = 1024
 
 
 def threads() -> int:
@@ -117,12 +119,40 @@ def constants(dtype: Any) -> np.ndarray:
     )
 
 
+def _order(arrays: list[np.ndarray], root: int) -> np.ndarray | None:
+    """The order to trace the rays in, or ``None`` to trace them as given: batches of :data:`SORT_MIN` rays or
+    more that are not in a coherent order already are sorted along a Morton curve of origin (in the root's
+    bounds) and direction (:mod:`jaxrt._src.traversal.cpu_order`)."""
+    from jaxrt._src.traversal import cpu_order
+
+    origin, direction = arrays[_RAYS], arrays[_RAYS + 1]
+    if origin.shape[0] < SORT_MIN or arrays[0].shape[0] == 0:
+        return None
+    lower, upper = arrays[0][root].min(axis=0), arrays[1][root].max(axis=0)
+    if cpu_order.coherent(origin, direction, lower, upper):
+        return None
+    return cpu_order.ray_order(origin, direction, lower, upper)
+
+
 def _run(params: tuple, arrays: list[np.ndarray]) -> tuple[np.ndarray, ...]:
     """Trace one scene's rays (flat ``(n, ...)`` arrays) with the compiled kernel; with a hit list
-    (``params[6]``) the hit distances, leaves, totals and chains follow the six outputs."""
+    (``params[6]``) the hit distances, leaves, totals and chains follow the six outputs. Rays in an incoherent
+    order are traced sorted (:func:`_order`): copied into that order, and their results copied back."""
+    arrays = [np.ascontiguousarray(a) for a in arrays]
+    order = _order(arrays, params[0])
+    if order is None:
+        return _trace(params, arrays)
+    out = _trace(params, arrays[:_RAYS] + [a[order] for a in arrays[_RAYS:]])
+    results = tuple(np.empty_like(a) for a in out)
+    for result, sorted_result in zip(results, out, strict=True):
+        result[order] = sorted_result
+    return results
+
+
+def _trace(params: tuple, arrays: list[np.ndarray]) -> tuple[np.ndarray, ...]:
+    """:func:`_run` on rays in the order given."""
     from jaxrt._src.traversal import cpu_kernel
 
-    arrays = [np.ascontiguousarray(a) for a in arrays]
     origin = arrays[_RAYS]
     n, levels = origin.shape[0], params[2]
     hit_list, k = bool(params[6]), params[7]
@@ -146,8 +176,10 @@ def _run(params: tuple, arrays: list[np.ndarray]) -> tuple[np.ndarray, ...]:
     counter = np.zeros(1, np.int64)
     if levels == 0 and not hit_list and not params[9]:  # triangles only, no instances: the lean loop
         rays = arrays[_RAYS : _RAYS + 5]
+        boxes = np.empty((arrays[0].shape[0], 12), dtype)  # the node boxes as the vector box test reads them
+        cpu_kernel.box_rows(arrays[0], arrays[1], boxes)
         run = functools.partial(
-            cpu_kernel.trace_flat, *arrays[:4], *rays, consts, params[0], params[3], bool(params[4]), params[5],
+            cpu_kernel.trace_flat, *arrays[:4], boxes, *rays, consts, params[0], params[3], bool(params[4]), params[5],
             counter, CHUNK, n, out[0], out[1], *out[3:],
         )  # fmt: skip
     else:
