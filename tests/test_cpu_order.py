@@ -101,3 +101,25 @@ def test_sorted_batch_in_the_general_loop_equals_unsorted(monkeypatch):
     assert set(sorted_) == set(unsorted) and "hit_count" in sorted_
     for name in sorted_:
         np.testing.assert_array_equal(np.asarray(sorted_[name]), np.asarray(unsorted[name]), err_msg=name)
+
+
+def test_box_rows_are_laid_out_once_per_structure_and_dropped_with_it():
+    """The box rows of a structure traced at top level are made on its first call, reused while its node arrays
+    live, never handed to other arrays, and dropped with them."""
+    import gc
+
+    v, f = icosphere(2)
+    first = rt.build_primitive_structure(rt.TriangleGeometry(v.astype(np.float32), f))
+    second = rt.build_primitive_structure(rt.TriangleGeometry(v.astype(np.float32) * 2, f))
+    rays = rt.Ray(*(np.asarray(a) for a in _rays(64)))
+    rows = cpu.host_scene(first, rays)[1]
+    assert cpu.host_scene(first, rays)[1] is rows
+    expected = cpu.box_rows(np.asarray(first.node_lower), np.asarray(first.node_upper))
+    np.testing.assert_array_equal(np.asarray(rows).view(np.float32), expected)
+    other = cpu.host_scene(second, rays)[1]
+    assert other is not rows and not np.array_equal(np.asarray(other), np.asarray(rows))
+    key = id(first.node_lower)
+    assert key in cpu._BOX_ROWS
+    del first
+    gc.collect()
+    assert key not in cpu._BOX_ROWS
