@@ -143,9 +143,7 @@ def _box_pair(typingctx, rows, b, o0, o1, o2, i0, i1, i2, t_min, t_max, far_scal
         far = select_min(
             builder.fmul(select_min(select_min(fars[0], fars[1]), fars[2]), splat(args[10], 2)), splat(args[9], 2)
         )
-        xlo = builder.shuffle_vector(x, x, mask(0, 1))
-        xhi = builder.shuffle_vector(x, x, mask(2, 3))
-        hit = builder.and_(builder.fcmp_ordered("<=", near, far), builder.fcmp_ordered("<=", xlo, xhi))
+        hit = builder.fcmp_ordered("<=", near, far)  # an empty box has NaN x bounds in its row: no hit
         lane = lambda v, k: builder.extract_element(v, ir.Constant(i32, k))  # noqa: E731
         values = [lane(hit, 0), lane(near, 0), lane(hit, 1), lane(near, 1)]
         return context.make_tuple(builder, signature.return_type, values)
@@ -157,13 +155,20 @@ def _box_pair(typingctx, rows, b, o0, o1, o2, i0, i1, i2, t_min, t_max, far_scal
 def box_rows(node_lower, node_upper, rows):
     """The child boxes of every node as :func:`_box_pair` reads them: ``rows[n, 4 a : 4 a + 4]`` holds axis
     ``a``'s lower plane of box 0 and of box 1, then its upper plane of box 0 and of box 1 (one row of twelve
-    values per node: both boxes of a visit in one or two cache lines, each axis one vector load)."""
+    values per node: both boxes of a visit in one or two cache lines, each axis one vector load). A box that
+    the slab test rejects by its x bounds alone (not ``lower <= upper``: an empty box) gets NaN x bounds,
+    which make its near distance NaN and so reject it in :func:`_box_pair` without a separate test."""
+    nan = node_lower.dtype.type(np.nan)
     for n in range(node_lower.shape[0]):
         for a in range(3):
             rows[n, 4 * a] = node_lower[n, 0, a]
             rows[n, 4 * a + 1] = node_lower[n, 1, a]
             rows[n, 4 * a + 2] = node_upper[n, 0, a]
             rows[n, 4 * a + 3] = node_upper[n, 1, a]
+        for k in range(2):
+            if not node_lower[n, k, 0] <= node_upper[n, k, 0]:
+                rows[n, k] = nan
+                rows[n, 2 + k] = nan
 
 
 @numba.njit(cache=True)
@@ -704,7 +709,7 @@ def trace_flat(
                     else:
                         near, far = c1, c0
                     if depth < stack_size:
-                        stack[depth] = far
+                        stack[np.uint64(depth)] = far
                         depth += 1
                     else:
                         overflow = True
@@ -717,7 +722,7 @@ def trace_flat(
                     break
                 else:
                     depth -= 1
-                    node = stack[depth]
+                    node = stack[np.uint64(depth)]
                 if any_hit and leaf >= 0:
                     break
             out_distance[i] = distance
