@@ -123,3 +123,16 @@ def test_box_rows_are_laid_out_once_per_structure_and_dropped_with_it():
     del first
     gc.collect()
     assert key not in cpu._BOX_ROWS
+
+
+@pytest.mark.parametrize(
+    "shape,dtype", [((N,), np.bool_), ((N, 3), np.float32), ((N, 0), np.int32), ((N, 2, 3), np.float64)]
+)
+def test_permuted_and_unpermuted_are_the_fancy_indexing(shape, dtype):
+    rng = np.random.default_rng(3)
+    a = (rng.normal(size=shape) * 100).astype(dtype)
+    order = rng.permutation(N).astype(np.int32)
+    np.testing.assert_array_equal(cpu_order.permuted(a, order), a[order])
+    expected = np.empty_like(a)
+    expected[order] = a
+    np.testing.assert_array_equal(cpu_order.unpermuted(a, order), expected)

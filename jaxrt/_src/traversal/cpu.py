@@ -140,15 +140,14 @@ def _run(params: tuple, arrays: list[np.ndarray], boxes: np.ndarray | None = Non
     (``params[6]``) the hit distances, leaves, totals and chains follow the six outputs. Rays in an incoherent
     order are traced sorted (:func:`_order`): copied into that order, and their results copied back.
     ``boxes``: the scene's box rows (:func:`box_rows`), or ``None`` to lay them out here."""
+    from jaxrt._src.traversal import cpu_order
+
     arrays = [np.ascontiguousarray(a) for a in arrays]
     order = _order(arrays, params[0])
     if order is None:
         return _trace(params, arrays, boxes)
-    out = _trace(params, arrays[:_RAYS] + [a[order] for a in arrays[_RAYS:]], boxes)
-    results = tuple(np.empty_like(a) for a in out)
-    for result, sorted_result in zip(results, out, strict=True):
-        result[order] = sorted_result
-    return results
+    out = _trace(params, arrays[:_RAYS] + [cpu_order.permuted(a, order) for a in arrays[_RAYS:]], boxes)
+    return tuple(cpu_order.unpermuted(a, order) for a in out)
 
 
 def _trace(params: tuple, arrays: list[np.ndarray], boxes: np.ndarray | None) -> tuple[np.ndarray, ...]:

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["coherent", "ray_order"]
+__all__ = ["coherent", "permuted", "ray_order", "unpermuted"]
 
 #: Bits of the sort key per coordinate (six coordinates), and bits of one radix pass (two passes).
 BITS = 4
@@ -118,3 +118,41 @@ def ray_order(origin, direction, lower, upper):
         order[high[digit]] = i
         high[digit] += 1
     return order
+
+
+@numba.njit(nogil=True, cache=True)
+def _take_rows(a, order, out):
+    """``out[j] = a[order[j]]`` for rows of words."""
+    for j in range(order.shape[0]):
+        i = order[j]
+        for c in range(a.shape[1]):
+            out[j, c] = a[i, c]
+
+
+@numba.njit(nogil=True, cache=True)
+def _put_rows(a, order, out):
+    """``out[order[j]] = a[j]`` for rows of words."""
+    for j in range(order.shape[0]):
+        i = order[j]
+        for c in range(a.shape[1]):
+            out[i, c] = a[j, c]
+
+
+def _words(a: np.ndarray) -> np.ndarray:
+    """A contiguous array's rows (its first axis) as rows of 4-byte words where they divide, else of bytes."""
+    rows = a.reshape(a.shape[0], -1)
+    return rows.view(np.uint32) if rows.shape[1] * a.itemsize % 4 == 0 else rows.view(np.uint8)
+
+
+def permuted(a: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """``a[order]`` (along the first axis) for a contiguous array, copied by compiled loops."""
+    out = np.empty_like(a)
+    _take_rows(_words(a), order, _words(out))
+    return out
+
+
+def unpermuted(a: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """The array ``b`` with ``b[order] = a`` (along the first axis) for a contiguous array."""
+    out = np.empty_like(a)
+    _put_rows(_words(a), order, _words(out))
+    return out
