@@ -97,8 +97,8 @@ def _box_pair(typingctx, rows, b, o0, o1, o2, i0, i1, i2, t_min, t_max, far_scal
     """Both child boxes of a node (its twelve values at flat offset ``b`` of ``rows``, laid out by
     :func:`box_rows`) with the slab test of :func:`_box` for a ray parallel to no axis:
     ``(hit0, near0, hit1, near1)``. Each axis is one vector load, ``[lower of box 0, lower of box 1, upper of
-    box 0, upper of box 1]``; every lane computes what the scalar test computes (the same subtraction, product
-    and ``select``-based ``min``/``max`` in the same order)."""
+    box 0, upper of box 1]``; every lane computes the scalar test's slab distances (the same subtraction,
+    product and ``select``-based ``min``/``max``), and the same decisions for an interval without NaN."""
     sig = types.Tuple((types.boolean, o0, types.boolean, o0))(rows, b, o0, o1, o2, i0, i1, i2, t_min, t_max, far_scale)  # fmt: skip
 
     def codegen(context, builder, signature, args):
@@ -139,11 +139,14 @@ def _box_pair(typingctx, rows, b, o0, o1, o2, i0, i1, i2, t_min, t_max, far_scal
             t1 = builder.shuffle_vector(t, t, mask(2, 3))
             nears.append(select_min(t0, t1))
             fars.append(select_max(t0, t1))
-        near = select_max(select_max(select_max(nears[0], nears[1]), nears[2]), splat(args[8], 2))
-        far = select_min(
-            builder.fmul(select_min(select_min(fars[0], fars[1]), fars[2]), splat(args[10], 2)), splat(args[9], 2)
-        )
-        hit = builder.fcmp_ordered("<=", near, far)  # an empty box has NaN x bounds in its row: no hit
+        # The scalar test's near = max(max(max(nx, ny), nz), t_min) and hit = near <= min(far, t_max), in fewer
+        # dependent steps: max(max(nx, ny), max(t_min, nz)) and (near <= far) & (near <= t_max). The same
+        # decisions where t_min and t_max are not NaN (an enabled ray's interval): ``select`` keeps its first
+        # operand where the second is NaN, so t_min goes first; near is only compared (a zero's sign is moot).
+        # An empty box has NaN x bounds in its row (box_rows), so a NaN near: no hit.
+        near = select_max(select_max(nears[0], nears[1]), select_max(splat(args[8], 2), nears[2]))
+        far = builder.fmul(select_min(select_min(fars[0], fars[1]), fars[2]), splat(args[10], 2))
+        hit = builder.and_(builder.fcmp_ordered("<=", near, far), builder.fcmp_ordered("<=", near, splat(args[9], 2)))
         lane = lambda v, k: builder.extract_element(v, ir.Constant(i32, k))  # noqa: E731
         values = [lane(hit, 0), lane(near, 0), lane(hit, 1), lane(near, 1)]
         return context.make_tuple(builder, signature.return_type, values)
