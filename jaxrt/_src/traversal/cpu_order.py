@@ -26,20 +26,20 @@ SAMPLES = 1024
 SAME_CELL = 0.5
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _spread(q):
     """``q``, a float in ``[0, 16)``, as four bits moved to bits 0, 6, 12 and 18."""
     x = np.uint64(np.int64(q)) & np.uint64(15)
     return (x | (x << np.uint64(5)) | (x << np.uint64(10)) | (x << np.uint64(15))) & np.uint64(0x41041)
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _cell(x, low, scale, top):
     """``(x - low) * scale`` clamped to ``[0, top]`` (NaN to 0)."""
     return min(max(0.0, (x - low) * scale), top)
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _frame(lower, upper):
     """The key's constants for the box ``lower, upper``: its lower corner, the scale of each axis and the top
     cell coordinate."""
@@ -52,7 +52,7 @@ def _frame(lower, upper):
     return l0, l1, l2, s0, s1, s2, top
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _key(origin, direction, i, frame):
     """Ray ``i``'s 24-bit Morton key: its origin's cell in the frame's box (:func:`_frame`) and the cell of its
     direction scaled to ``[-1, 1]`` by its largest component."""
