@@ -5,7 +5,9 @@ the jax version has none), behind the same contract as the portable traversal.
 levels) and returns the :class:`~jaxrt._src.traversal.scene.TraversalResult` of the portable traversal: the same
 leaf, distance, instance chain and stats counters, decided with the same float operations
 (:mod:`jaxrt._src.traversal.cpu_kernel` says how). Rays are traced in parallel over the machine's cores
-(:func:`threads`): the compiled loop releases the GIL, and a thread pool runs ranges of rays.
+(:func:`threads`): the compiled loop releases the GIL, and a thread pool runs ranges of rays. A large batch in
+an incoherent order is traced sorted along a Morton curve of origin and direction
+(:mod:`jaxrt._src.traversal.cpu_order`), its results put back in the given order.
 
 The intersector picks this path (``backend="auto"`` or ``"cpu"``) when :func:`unavailable_reason` returns
 ``None`` (the default JAX backend is the CPU and Numba imports) and

@@ -9,7 +9,8 @@ watertight test (Woop, Benthin, Wald 2013), the nearer inner child entered and t
 instance transition (ray moved by the instance's world-to-object rows, facing multiplied along the chain).
 :func:`trace_rays` is the general loop; :func:`trace_flat` the same loop for a primitive structure of triangles
 with a nearest or any-hit query (no instance, hit-list or analytic bookkeeping per visit), which tests both
-child boxes of a node in one vector slab test (:func:`_box_pair`) for rays parallel to no axis.
+child boxes of a node in one vector slab test (:func:`_box_pair`, on the node rows of :func:`box_rows`) for rays
+parallel to no axis.
 
 Same decisions to the bit: every value the portable path compares is computed here with the same float
 operations, in the same order and precision (the geometry's dtype). Two details make that hold:
