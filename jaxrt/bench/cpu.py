@@ -4,8 +4,9 @@ For each scene, ray set (primary, diffuse) and query (closest, any hit), three t
 rays, ``--repeats`` rounds, and the best round of each is kept (the machine may be shared: alternating and
 keeping the best round compares the tracers under the same load):
 
-- ``kernel``: the compiled traversal alone (:func:`jaxrt._src.traversal.cpu._run` on NumPy arrays: the leaf,
-  distance and counters, no JAX work around it);
+- ``kernel``: the compiled traversal alone (:func:`jaxrt._src.traversal.cpu._run` on NumPy arrays: the ray
+  order, the leaf, distance and counters, no JAX work around it; the structure's box rows laid out beforehand,
+  as a top-level call keeps them);
 - ``intersect``: the whole ``Intersector.intersect`` call (ray sanitising, the host callback with its argument
   copies, the result fields), synchronised;
 - ``embree``: Embree through embreex (its single-ray loop on one thread).
@@ -70,11 +71,13 @@ def _query_call(query: str, backend: str, structure: Any, rays: rt.Ray) -> Calla
 
 
 def _kernel_call(structure: Any, intersector: rt.Intersector, rays: rt.Ray) -> Callable[[], Any]:
-    """The compiled traversal alone on host arrays (the arguments the intersector's callback receives)."""
+    """The compiled traversal alone on host arrays (the arguments the intersector's callback receives, and the
+    structure's box rows, which a top-level call lays out once per structure)."""
     from jaxrt._src.traversal import cpu
 
     params, arrays = cpu.kernel_arguments(structure, rays, intersector)
-    return lambda: cpu._run(params, arrays)
+    boxes = cpu.box_rows(arrays[0], arrays[1])
+    return lambda: cpu._run(params, arrays, boxes)
 
 
 def measure_scene(

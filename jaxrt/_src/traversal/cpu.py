@@ -5,7 +5,9 @@ the jax version has none), behind the same contract as the portable traversal.
 levels) and returns the :class:`~jaxrt._src.traversal.scene.TraversalResult` of the portable traversal: the same
 leaf, distance, instance chain and stats counters, decided with the same float operations
 (:mod:`jaxrt._src.traversal.cpu_kernel` says how). Rays are traced in parallel over the machine's cores
-(:func:`threads`): the compiled loop releases the GIL, and a thread pool runs ranges of rays.
+(:func:`threads`): the compiled loop releases the GIL, and a thread pool runs ranges of rays. A large batch in
+an incoherent order is traced sorted along a Morton curve of origin and direction
+(:mod:`jaxrt._src.traversal.cpu_order`), its results put back in the given order.
 
 The intersector picks this path (``backend="auto"`` or ``"cpu"``) when :func:`unavailable_reason` returns
 ``None`` (the default JAX backend is the CPU and Numba imports) and
@@ -28,6 +30,7 @@ from __future__ import annotations
 import ctypes
 import functools
 import os
+import weakref
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -60,6 +63,8 @@ _FLOAT_ARGS = (0, 1, 3, 4, 8, 9, 10, 11, 12)
 CHUNK = 32
 #: Fewest rays per thread worth starting one.
 MIN_TASK = 256
+#: Fewest rays worth sorting into a coherent order (:func:`_order`).
+SORT_MIN = 1024
 
 
 def threads() -> int:
@@ -117,12 +122,40 @@ def constants(dtype: Any) -> np.ndarray:
     )
 
 
-def _run(params: tuple, arrays: list[np.ndarray]) -> tuple[np.ndarray, ...]:
+def _order(arrays: list[np.ndarray], root: int) -> np.ndarray | None:
+    """The order to trace the rays in, or ``None`` to trace them as given: batches of :data:`SORT_MIN` rays or
+    more that are not in a coherent order already are sorted along a Morton curve of origin (in the root's
+    bounds) and direction (:mod:`jaxrt._src.traversal.cpu_order`)."""
+    from jaxrt._src.traversal import cpu_order
+
+    origin, direction = arrays[_RAYS], arrays[_RAYS + 1]
+    if origin.shape[0] < SORT_MIN or arrays[0].shape[0] == 0:
+        return None
+    lower, upper = arrays[0][root].min(axis=0), arrays[1][root].max(axis=0)
+    if cpu_order.coherent(origin, direction, lower, upper):
+        return None
+    return cpu_order.ray_order(origin, direction, lower, upper)
+
+
+def _run(params: tuple, arrays: list[np.ndarray], boxes: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
     """Trace one scene's rays (flat ``(n, ...)`` arrays) with the compiled kernel; with a hit list
-    (``params[6]``) the hit distances, leaves, totals and chains follow the six outputs."""
-    from jaxrt._src.traversal import cpu_kernel
+    (``params[6]``) the hit distances, leaves, totals and chains follow the six outputs. Rays in an incoherent
+    order are traced sorted (:func:`_order`): copied into that order, and their results copied back.
+    ``boxes``: the scene's box rows (:func:`box_rows`), or ``None`` to lay them out here."""
+    from jaxrt._src.traversal import cpu_order
 
     arrays = [np.ascontiguousarray(a) for a in arrays]
+    order = _order(arrays, params[0])
+    if order is None:
+        return _trace(params, arrays, boxes)
+    out = _trace(params, arrays[:_RAYS] + [cpu_order.permuted(a, order) for a in arrays[_RAYS:]], boxes)
+    return tuple(cpu_order.unpermuted(a, order) for a in out)
+
+
+def _trace(params: tuple, arrays: list[np.ndarray], boxes: np.ndarray | None) -> tuple[np.ndarray, ...]:
+    """:func:`_run` on rays in the order given."""
+    from jaxrt._src.traversal import cpu_kernel
+
     origin = arrays[_RAYS]
     n, levels = origin.shape[0], params[2]
     hit_list, k = bool(params[6]), params[7]
@@ -146,8 +179,10 @@ def _run(params: tuple, arrays: list[np.ndarray]) -> tuple[np.ndarray, ...]:
     counter = np.zeros(1, np.int64)
     if levels == 0 and not hit_list and not params[9]:  # triangles only, no instances: the lean loop
         rays = arrays[_RAYS : _RAYS + 5]
+        if boxes is None:
+            boxes = box_rows(arrays[0], arrays[1])
         run = functools.partial(
-            cpu_kernel.trace_flat, *arrays[:4], *rays, consts, params[0], params[3], bool(params[4]), params[5],
+            cpu_kernel.trace_flat, *arrays[:4], boxes, *rays, consts, params[0], params[3], bool(params[4]), params[5],
             counter, CHUNK, n, out[0], out[1], *out[3:],
         )  # fmt: skip
     else:
@@ -168,13 +203,16 @@ def _host(params: tuple, wide: bool, hosted: tuple | None, *args: np.ndarray) ->
     Float64 arrays travel both ways as pairs of uint32 words (``wide``): JAX converts a callback's float64
     arguments and results to float32 when the thread that runs it has ``jax_enable_x64`` off
     (``jax.enable_x64`` is a per-thread setting). With ``hosted`` (the shapes and dtypes of the node and
-    triangle arrays), the first argument holds their addresses (:func:`host_scene`) in place of the arrays.
+    triangle arrays), the first argument holds their addresses (:func:`host_scene`) in place of the arrays, and
+    the third the structure's box rows.
     """
+    boxes = None
     if hosted is not None:
         words = np.asarray(args[0]).reshape(-1, 2)[: len(hosted)].astype(np.uint64)
         addresses = words[:, 0] | (words[:, 1] << np.uint64(32))
         in_place = {i: _at(int(a), shape, dtype) for a, (i, shape, dtype) in zip(addresses, hosted, strict=True)}
-        rest = iter(args[2:])  # args[1]: one element of each, so that the program holds their buffers
+        boxes = np.asarray(args[2]).view(hosted[0][2])  # the structure's box rows (host_scene), as words
+        rest = iter(args[3:])  # args[1]: one element of each, so that the program holds their buffers
         args = tuple(in_place[i] if i in in_place else next(rest) for i in range(len(_SCENE_RANKS + _RAY_RANKS)))
     if wide:
         args = tuple(
@@ -183,7 +221,7 @@ def _host(params: tuple, wide: bool, hosted: tuple | None, *args: np.ndarray) ->
             else a
             for i, a in enumerate(args)
         )
-    out = _host_arrays(params, *args)
+    out = _host_arrays(params, *args, boxes=boxes)
     if wide:  # the float outputs (distances, and the hit distances of a hit list) as pairs of words
         words = lambda a: a.view(np.uint32).reshape(*a.shape, 2)  # noqa: E731
         out = tuple(words(a) if i in (0, 6) else a for i, a in enumerate(out))
@@ -208,17 +246,50 @@ def _at(address: int, shape: tuple[int, ...], dtype: str) -> np.ndarray:
     return array
 
 
-def host_scene(structure: Any, rays: Any, *, with_rays: bool = True) -> np.ndarray | None:
+def box_rows(node_lower: np.ndarray, node_upper: np.ndarray) -> np.ndarray:
+    """The node boxes as the lean loop's vector box test reads them (:func:`cpu_kernel.box_rows`): ``(nodes,
+    12)`` in their dtype."""
+    from jaxrt._src.traversal import cpu_kernel
+
+    rows = np.empty((node_lower.shape[0], 12), node_lower.dtype)
+    cpu_kernel.box_rows(node_lower, node_upper, rows)
+    return rows
+
+
+#: Box rows of the structures traced at top level: ``id(node_lower) -> (node_lower, node_upper, rows)``, the
+#: first two weak references, the rows a uint32 array on the CPU device. An entry is dropped when its
+#: ``node_lower`` array is freed (before its id can be reused), and used only for the very arrays it was made
+#: from: a JAX array never changes its values, so the rows stay those of its boxes.
+_BOX_ROWS: dict[int, tuple[Any, Any, jax.Array]] = {}
+
+
+def _box_rows_of(structure: Any) -> jax.Array:
+    """The box rows of a concrete primitive structure's nodes (as uint32 words on the CPU device), laid out on
+    its first call and kept while its node arrays live."""
+    lower, upper = structure.node_lower, structure.node_upper
+    entry = _BOX_ROWS.get(id(lower))
+    if entry is not None and entry[0]() is lower and entry[1]() is upper:
+        return entry[2]
+    rows = box_rows(np.asarray(lower), np.asarray(upper))
+    words = jax.device_put(rows.view(np.uint32), next(iter(lower.devices())))
+    _BOX_ROWS[id(lower)] = (weakref.ref(lower), weakref.ref(upper), words)
+    weakref.finalize(lower, _BOX_ROWS.pop, id(lower), None)
+    return words
+
+
+def host_scene(structure: Any, rays: Any, *, with_rays: bool = True) -> tuple[np.ndarray, jax.Array] | None:
     """The addresses of a primitive structure's node and triangle buffers, and of the flat rays' origin,
     direction and interval where they have the scene's dtype and ``with_rays`` (the program traces them in one
     piece, not in chunks) (``(4, 2)`` or ``(8, 2)`` uint32 words), for the
-    CPU traversal to read them in place instead of receiving copies through the callback; ``None`` where that
+    CPU traversal to read them in place instead of receiving copies through the callback, with the structure's
+    box rows (:func:`_box_rows_of`, laid out once per structure instead of on every call); ``None`` where that
     is not safe: inside a trace (under ``jit``, ``vmap`` or ``grad`` an address could outlive its buffer), for
     instance structures (their node arrays are assembled inside the program), or for arrays that are not
     single-device CPU buffers.
 
     The addresses are valid while the program that is passed the structure runs: an executing program keeps
-    its argument buffers alive, and the traversal reads them only then.
+    its argument buffers alive, and the traversal reads them only then. The box rows are an argument of that
+    program themselves.
     """
     from jaxrt._src.structures import PrimitiveAccelerationStructure
 
@@ -252,17 +323,18 @@ def host_scene(structure: Any, rays: Any, *, with_rays: bool = True) -> np.ndarr
     # callback that needs the GIL (a deadlock).
     jax.block_until_ready(arrays)
     addresses = [a.unsafe_buffer_pointer() for a in arrays]
-    return np.array([[a & 0xFFFFFFFF, a >> 32] for a in addresses], np.uint32)
+    return np.array([[a & 0xFFFFFFFF, a >> 32] for a in addresses], np.uint32), _box_rows_of(structure)
 
 
-def _host_arrays(params: tuple, *args: np.ndarray) -> tuple[np.ndarray, ...]:
-    """The traversal's outputs for callback arguments with leading vmap axes."""
+def _host_arrays(params: tuple, *args: np.ndarray, boxes: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+    """The traversal's outputs for callback arguments with leading vmap axes (``boxes``: the box rows of an
+    unbatched scene, or ``None``)."""
     ranks = _SCENE_RANKS + _RAY_RANKS
     args = [np.asarray(a) for a in args]
     lead = [a.shape[: a.ndim - r] for a, r in zip(args, ranks, strict=True)]
     batch = np.broadcast_shapes(*lead)
     if not batch:
-        return _run(params, args)
+        return _run(params, args, boxes)
     scenes = int(np.prod(np.broadcast_shapes(*lead[:_RAYS]), dtype=np.int64))
     if scenes == 1:  # rays batched over one scene: one parallel call over all of them
         scene = [a.reshape(a.shape[a.ndim - r :]) for a, r in zip(args[:_RAYS], _SCENE_RANKS, strict=True)]
@@ -270,7 +342,7 @@ def _host_arrays(params: tuple, *args: np.ndarray) -> tuple[np.ndarray, ...]:
             np.broadcast_to(a, batch + a.shape[a.ndim - r :]) for a, r in zip(args[_RAYS:], _RAY_RANKS, strict=True)
         ]
         n = rays[0].shape[-2]
-        out = _run(params, scene + [a.reshape(-1, *a.shape[len(batch) + 1 :]) for a in rays])
+        out = _run(params, scene + [a.reshape(-1, *a.shape[len(batch) + 1 :]) for a in rays], boxes)
         return tuple(a.reshape(*batch, n, *a.shape[1:]) for a in out)
     full = [np.broadcast_to(a, batch + a.shape[a.ndim - r :]) for a, r in zip(args, ranks, strict=True)]
     results = [_run(params, [a[index] for a in full]) for index in np.ndindex(*batch)]
@@ -380,9 +452,9 @@ def trace_scene(
       analytic: the parameter rows of the scene's analytic leaves in the scene's dtype
         (:func:`jaxrt._src.traversal.gpu.analytic_leaves`): bounding-box leaves tested as the built-in
         intersection functions test them.
-      host: ``None``, or the addresses of ``scene``'s node and triangle arrays and maybe of the rays
-        (:func:`host_scene`): the arrays of a primitive structure and rays passed to the running program,
-        read in place (a disabled ray's own values are read, and skipped).
+      host: ``None``, or the addresses of ``scene``'s node and triangle arrays and maybe of the rays, with
+        the structure's box rows (:func:`host_scene`): the arrays of a primitive structure and rays passed to
+        the running program, read in place (a disabled ray's own values are read, and skipped).
 
     Returns:
       The portable traversal's :class:`~jaxrt._src.traversal.scene.TraversalResult`; with ``max_hits`` or
@@ -417,6 +489,7 @@ def trace_scene(
         )
     hosted = None
     if host is not None:  # arrays read in place (see host_scene): the scene's, and maybe the rays'
+        host, boxes = host
         in_place = (0, 1, 2, 3) if host.shape[0] == 4 else (0, 1, 2, 3, 9, 10, 11, 12)
         sources = (scene.node_lower, scene.node_upper, scene.node_children, scene.leaf_triangle, origin, direction, t_min, t_max)  # fmt: skip
         hosted = tuple(
@@ -428,7 +501,7 @@ def trace_scene(
         anchors = jnp.concatenate(
             [lax.bitcast_convert_type(detached(a).reshape(-1)[:1], jnp.uint8).reshape(-1) for a in sources]
         )
-        args = (jnp.asarray(host, jnp.uint32), anchors, *(a for i, a in enumerate(args) if i not in in_place))
+        args = (jnp.asarray(host, jnp.uint32), anchors, boxes, *(a for i, a in enumerate(args) if i not in in_place))
     callback = functools.partial(_host, params, wide, hosted)
     if _buffer_callback is not None:
         out = _buffer_callback(functools.partial(_host_into, callback), shapes, vmap_method="expand_dims")(*args)

@@ -9,7 +9,8 @@ watertight test (Woop, Benthin, Wald 2013), the nearer inner child entered and t
 instance transition (ray moved by the instance's world-to-object rows, facing multiplied along the chain).
 :func:`trace_rays` is the general loop; :func:`trace_flat` the same loop for a primitive structure of triangles
 with a nearest or any-hit query (no instance, hit-list or analytic bookkeeping per visit), which tests both
-child boxes of a node in one vector slab test (:func:`_box_pair`) for rays parallel to no axis.
+child boxes of a node in one vector slab test (:func:`_box_pair`, on the node rows of :func:`box_rows`) for rays
+parallel to no axis.
 
 Same decisions to the bit: every value the portable path compares is computed here with the same float
 operations, in the same order and precision (the geometry's dtype). Two details make that hold:
@@ -43,6 +44,7 @@ _U6 = np.uint64(6)
 _U7 = np.uint64(7)
 _U8 = np.uint64(8)
 _U9 = np.uint64(9)
+_U12 = np.uint64(12)
 
 
 @intrinsic
@@ -92,15 +94,16 @@ def _fetch_add(typingctx, counter, amount):
 
 
 @intrinsic
-def _box_pair(typingctx, lower, upper, b, o0, o1, o2, i0, i1, i2, t_min, t_max, far_scale):
-    """Both child boxes of a node (six values each at flat offset ``b`` of ``lower`` and ``upper``) with the slab
-    test of :func:`_box` for a ray parallel to no axis: ``(hit0, near0, hit1, near1)``. The two boxes' lower and
-    upper planes of an axis are one vector; every lane computes what the scalar test computes (the same
-    subtraction, product and ``select``-based ``min``/``max`` in the same order)."""
-    sig = types.Tuple((types.boolean, o0, types.boolean, o0))(lower, upper, b, o0, o1, o2, i0, i1, i2, t_min, t_max, far_scale)  # fmt: skip
+def _box_pair(typingctx, rows, b, o0, o1, o2, i0, i1, i2, t_min, t_max, far_scale):
+    """Both child boxes of a node (its twelve values at flat offset ``b`` of ``rows``, laid out by
+    :func:`box_rows`) with the slab test of :func:`_box` for a ray parallel to no axis:
+    ``(hit0, near0, hit1, near1)``. Each axis is one vector load, ``[lower of box 0, lower of box 1, upper of
+    box 0, upper of box 1]``; every lane computes the scalar test's slab distances (the same subtraction,
+    product and ``select``-based ``min``/``max``), and the same decisions for an interval without NaN."""
+    sig = types.Tuple((types.boolean, o0, types.boolean, o0))(rows, b, o0, o1, o2, i0, i1, i2, t_min, t_max, far_scale)  # fmt: skip
 
     def codegen(context, builder, signature, args):
-        ty = args[3].type
+        ty = args[2].type
         size = 4 if ty == ir.FloatType() else 8
         v4 = ir.VectorType(ty, 4)
         i32 = ir.IntType(32)
@@ -108,27 +111,13 @@ def _box_pair(typingctx, lower, upper, b, o0, o1, o2, i0, i1, i2, t_min, t_max, 
         def mask(*lanes):
             return ir.Constant(ir.VectorType(i32, len(lanes)), [ir.Constant(i32, x) for x in lanes])
 
-        def rows(index):  # lanes 0-3 and 2-5 of the node's six values
-            data = context.make_array(signature.args[index])(context, builder, args[index]).data
-            loads = []
-            for k in (0, 2):
-                at = builder.gep(data, [builder.add(args[2], ir.Constant(args[2].type, k))])
-                loads.append(builder.load(builder.bitcast(at, v4.as_pointer()), align=size))
-            return loads
+        data = context.make_array(signature.args[0])(context, builder, args[0]).data
 
-        (la, lb), (ha, hb) = rows(0), rows(1)
-        # One axis per vector: [lower of box 0, lower of box 1, upper of box 0, upper of box 1].
-        x = builder.shuffle_vector(la, ha, mask(0, 3, 4, 7))
-        y = builder.shuffle_vector(
-            builder.shuffle_vector(la, lb, mask(1, 6, 1, 6)),
-            builder.shuffle_vector(ha, hb, mask(1, 6, 1, 6)),
-            mask(0, 1, 4, 5),
-        )
-        z = builder.shuffle_vector(
-            builder.shuffle_vector(la, lb, mask(2, 7, 2, 7)),
-            builder.shuffle_vector(ha, hb, mask(2, 7, 2, 7)),
-            mask(0, 1, 4, 5),
-        )
+        def axis(k):  # the four values at offset ``b + 4 k``
+            at = builder.gep(data, [builder.add(args[1], ir.Constant(args[1].type, 4 * k))])
+            return builder.load(builder.bitcast(at, v4.as_pointer()), align=size)
+
+        x, y, z = axis(0), axis(1), axis(2)
 
         def splat(value, n):
             vt = ir.VectorType(ty, n)
@@ -145,24 +134,45 @@ def _box_pair(typingctx, lower, upper, b, o0, o1, o2, i0, i1, i2, t_min, t_max, 
             return builder.select(builder.fcmp_ordered(">", c, a), c, a)
 
         nears, fars = [], []
-        for vector, o, inv in ((x, args[3], args[6]), (y, args[4], args[7]), (z, args[5], args[8])):
+        for vector, o, inv in ((x, args[2], args[5]), (y, args[3], args[6]), (z, args[4], args[7])):
             t = builder.fmul(builder.fsub(vector, splat(o, 4)), splat(inv, 4))
             t0 = builder.shuffle_vector(t, t, mask(0, 1))  # the lower planes' distances
             t1 = builder.shuffle_vector(t, t, mask(2, 3))
             nears.append(select_min(t0, t1))
             fars.append(select_max(t0, t1))
-        near = select_max(select_max(select_max(nears[0], nears[1]), nears[2]), splat(args[9], 2))
-        far = select_min(
-            builder.fmul(select_min(select_min(fars[0], fars[1]), fars[2]), splat(args[11], 2)), splat(args[10], 2)
-        )
-        xlo = builder.shuffle_vector(x, x, mask(0, 1))
-        xhi = builder.shuffle_vector(x, x, mask(2, 3))
-        hit = builder.and_(builder.fcmp_ordered("<=", near, far), builder.fcmp_ordered("<=", xlo, xhi))
+        # The scalar test's near = max(max(max(nx, ny), nz), t_min) and hit = near <= min(far, t_max), in fewer
+        # dependent steps: max(max(nx, ny), max(t_min, nz)) and (near <= far) & (near <= t_max). The same
+        # decisions where t_min and t_max are not NaN (an enabled ray's interval): ``select`` keeps its first
+        # operand where the second is NaN, so t_min goes first; near is only compared (a zero's sign is moot).
+        # An empty box has NaN x bounds in its row (box_rows), so a NaN near: no hit.
+        near = select_max(select_max(nears[0], nears[1]), select_max(splat(args[8], 2), nears[2]))
+        far = builder.fmul(select_min(select_min(fars[0], fars[1]), fars[2]), splat(args[10], 2))
+        hit = builder.and_(builder.fcmp_ordered("<=", near, far), builder.fcmp_ordered("<=", near, splat(args[9], 2)))
         lane = lambda v, k: builder.extract_element(v, ir.Constant(i32, k))  # noqa: E731
         values = [lane(hit, 0), lane(near, 0), lane(hit, 1), lane(near, 1)]
         return context.make_tuple(builder, signature.return_type, values)
 
     return sig, codegen
+
+
+@numba.njit(nogil=True, cache=True)
+def box_rows(node_lower, node_upper, rows):
+    """The child boxes of every node as :func:`_box_pair` reads them: ``rows[n, 4 a : 4 a + 4]`` holds axis
+    ``a``'s lower plane of box 0 and of box 1, then its upper plane of box 0 and of box 1 (one row of twelve
+    values per node: both boxes of a visit in one or two cache lines, each axis one vector load). A box that
+    the slab test rejects by its x bounds alone (not ``lower <= upper``: an empty box) gets NaN x bounds,
+    which make its near distance NaN and so reject it in :func:`_box_pair` without a separate test."""
+    nan = node_lower.dtype.type(np.nan)
+    for n in range(node_lower.shape[0]):
+        for a in range(3):
+            rows[n, 4 * a] = node_lower[n, 0, a]
+            rows[n, 4 * a + 1] = node_lower[n, 1, a]
+            rows[n, 4 * a + 2] = node_upper[n, 0, a]
+            rows[n, 4 * a + 3] = node_upper[n, 1, a]
+        for k in range(2):
+            if not node_lower[n, k, 0] <= node_upper[n, k, 0]:
+                rows[n, k] = nan
+                rows[n, 2 + k] = nan
 
 
 @numba.njit(cache=True)
@@ -626,17 +636,19 @@ def trace_rays(
 
 @numba.njit(nogil=True, cache=True)
 def trace_flat(
-    node_lower, node_upper, node_children, leaf_triangle, origin, direction, t_min_all, t_max_all, enabled, consts,
-    root, stack_size, any_hit, cull, counter, chunk, end, out_distance, out_leaf, out_visited, out_tested,
+    node_lower, node_upper, node_children, leaf_triangle, rows, origin, direction, t_min_all, t_max_all, enabled,
+    consts, root, stack_size, any_hit, cull, counter, chunk, end, out_distance, out_leaf, out_visited, out_tested,
     out_overflow,
 ):  # fmt: skip
     """:func:`trace_rays` for a primitive structure of triangles (no instance levels, no hit list, no analytic
     leaves): the same loop without the instance, hit-list and analytic bookkeeping, and the same results. The
-    instance chain (zero columns) is not written."""
+    instance chain (zero columns) is not written. ``rows`` holds the node boxes as :func:`box_rows` lays them
+    out, for the vector test; the scalar test reads ``node_lower`` and ``node_upper``."""
     stack = np.empty(max(stack_size, 1), np.int32)
     one, inf, clamp, huge, clamped_huge = consts[0], consts[2], consts[3], consts[4], consts[5]
     far_scale, parallel = consts[6], consts[7]
     lf, hf, cf, tf = node_lower.reshape(-1), node_upper.reshape(-1), node_children.reshape(-1), leaf_triangle.reshape(-1)  # fmt: skip
+    rf = rows.reshape(-1)
     while True:
         begin = _fetch_add(counter, chunk)
         if begin >= end:
@@ -670,7 +682,7 @@ def trace_flat(
                 c1 = cf[un * _U2 + _U1]
                 b = un * _U6
                 if straight:
-                    hit0, near0, hit1, near1 = _box_pair(lf, hf, b, o0, o1, o2, i0, i1, i2, t_min, distance, far_scale)  # fmt: skip
+                    hit0, near0, hit1, near1 = _box_pair(rf, un * _U12, o0, o1, o2, i0, i1, i2, t_min, distance, far_scale)  # fmt: skip
                 else:
                     hit0, near0 = _box(lf[b], lf[b + _U1], lf[b + _U2], hf[b], hf[b + _U1], hf[b + _U2], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
                     hit1, near1 = _box(lf[b + _U3], lf[b + _U4], lf[b + _U5], hf[b + _U3], hf[b + _U4], hf[b + _U5], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
@@ -701,7 +713,7 @@ def trace_flat(
                     else:
                         near, far = c1, c0
                     if depth < stack_size:
-                        stack[depth] = far
+                        stack[np.uint64(depth)] = far
                         depth += 1
                     else:
                         overflow = True
@@ -714,7 +726,7 @@ def trace_flat(
                     break
                 else:
                     depth -= 1
-                    node = stack[depth]
+                    node = stack[np.uint64(depth)]
                 if any_hit and leaf >= 0:
                     break
             out_distance[i] = distance
