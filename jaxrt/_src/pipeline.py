@@ -114,28 +114,21 @@ def kernel_declines(
             return f"curves are not covered by the {name}"
         if levels:
             return f"curves below instances are not covered by the {name}"
-        if motion or any(g.motion for g in geometry_info):
+        if moving:
             return f"curves in a structure with keyframe motion are not covered by the {name}"
         if "bounding_box" in kinds:
             return f"curves and bounding-box geometry in one structure are not covered by the {name}"
     if "bounding_box" in kinds:
         reason = _analytic_declines(intersector, backend, moving)
-        if reason is not None and not (in_waves and _user_functions(intersector)):
+        if reason is not None and not (in_waves and waves.user_functions(intersector)):
             return reason
     filtered = intersector.filter is not None and any(g.kind == "triangle" and not g.opaque for g in geometry_info)
     if filtered and not in_waves:
         where = "" if backend == "cpu" else " below instances, with keyframe motion or with curves"
         return f"filters on non-opaque geometry{where} are not covered by the {name}"
-    if backend == "cpu" and (motion or any(g.motion for g in geometry_info)):
+    if backend == "cpu" and moving:
         return f"keyframe motion is not covered by the {name}"
     return None
-
-
-def _user_functions(intersector: Any) -> bool:
-    """Whether some intersection function of ``intersector`` is user code (not a built-in shape)."""
-    from jaxrt._src.primitives import analytic
-
-    return any(not analytic.shape_code(fn) for _, fn in intersector.intersection_functions or ())
 
 
 def _analytic_declines(intersector: Any, backend: str, motion: bool) -> str | None:

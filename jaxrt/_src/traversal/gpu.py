@@ -554,7 +554,8 @@ class AnalyticLeaves(NamedTuple):
     """The parameter rows of a scene's analytic leaves, as the kernel reads them (:func:`analytic_leaves`)."""
 
     rows: jax.Array  # (P, 12) float32: :func:`~jaxrt._src.traversal.packed.pack_analytic`, code 0 elsewhere
-    shapes: int  # static: bit ``code - 1`` for each shape of the intersector's functions, bit 3 with triangles
+    shapes: int  # static: bit ``code - 1`` for each shape of the intersector's functions, bit 3 with triangles,
+    # bit 4 with boxes of user functions (code CANDIDATE_BOX, listed as candidates in waves)
 
 
 def analytic_leaves(

@@ -42,7 +42,7 @@ from jaxrt._src.traversal import step
 from jaxrt._src.traversal.scene import TraversalResult
 from jaxrt._src.traversal.step import HitList
 
-__all__ = ["CANDIDATES", "LATER_CANDIDATES", "WaveLoop", "WaveState", "needs_waves", "trace_waves"]
+__all__ = ["CANDIDATES", "LATER_CANDIDATES", "WaveLoop", "WaveState", "needs_waves", "trace_waves", "user_functions"]
 
 
 def _candidate_counts(setting: str) -> tuple[int, int]:
@@ -57,18 +57,20 @@ def _candidate_counts(setting: str) -> tuple[int, int]:
 CANDIDATES, LATER_CANDIDATES = _candidate_counts(os.environ.get("JAXRT_WAVE_CANDIDATES", "4,16"))
 
 
+def user_functions(intersector: Any) -> bool:
+    """Whether some intersection function of ``intersector`` is user code (not a built-in shape)."""
+    from jaxrt._src.primitives import analytic
+
+    return any(not analytic.shape_code(fn) for _, fn in intersector.intersection_functions or ())
+
+
 def needs_waves(intersector: Any, view: Any, *, filter_decided: bool = False) -> bool:
     """Whether tracing ``view`` with ``intersector`` calls user code per candidate: a filter on non-opaque
     triangles (unless ``filter_decided``: decided per primitive, :mod:`jaxrt._src.filter_states`), or a
     bounding-box function that is not one of the built-in ``rt.intersection_functions``."""
-    from jaxrt._src.primitives import analytic
-
     if leaf_tests.filtered_slots(intersector, view) and not filter_decided:
         return True
-    if "bounding_box" not in view.kinds:
-        return False
-    functions = intersector.intersection_functions or ()
-    return any(not analytic.shape_code(fn) for _, fn in functions)
+    return "bounding_box" in view.kinds and user_functions(intersector)
 
 
 class WaveState(NamedTuple):
@@ -188,8 +190,8 @@ def trace_waves(
     rays: Any,
     list_candidates: Callable,
     *,
-    candidates: int = CANDIDATES,
-    later: int = LATER_CANDIDATES,
+    candidates: int,
+    later: int,
 ) -> TraversalResult:
     """The portable traversal's result for ``rays`` (a ``SanitizedRays``) through the primitive structure of
     ``view``, in candidate waves: the first with ``candidates`` per ray, the rest (few rays) with ``later``.
