@@ -1,5 +1,6 @@
 """Shared test configuration: a deterministic hypothesis profile, the test-helper import path, the shared
-data folder, and a guard that ends a run whose test hangs."""
+data folder, a guard that ends a run whose test hangs, and one that drops JAX's compiled programs before the
+process runs out of memory mappings."""
 
 from __future__ import annotations
 
@@ -57,3 +58,28 @@ def _end_the_run_on_a_hang():
     faulthandler.dump_traceback_later(HANG_SECONDS, exit=True, file=_stderr[0] if _stderr else 2)
     yield
     faulthandler.cancel_dump_traceback_later()
+
+
+def _map_limit() -> int | None:
+    """The kernel's limit on a process's memory mappings (``vm.max_map_count``), where it can be read."""
+    try:
+        return int(Path("/proc/sys/vm/max_map_count").read_text())
+    except (OSError, ValueError):
+        return None
+
+
+#: Each program XLA compiles for the CPU holds memory mappings until JAX's caches let it go; a whole run
+#: compiles thousands and would pass Linux's default limit of 65,530 mappings, where the next compilation
+#: crashes the process (a segmentation fault). Past this many mappings the caches are cleared between tests.
+MAP_BUDGET = int(0.7 * (_map_limit() or 0))
+
+
+@pytest.fixture(autouse=True)
+def _drop_compiled_programs_before_the_mapping_limit():
+    if MAP_BUDGET:
+        with open("/proc/self/maps", "rb") as maps:
+            if sum(1 for _ in maps) > MAP_BUDGET:
+                import jax
+
+                jax.clear_caches()
+    yield

@@ -21,6 +21,7 @@ import pytest
 from reference import edges, icosphere
 
 import jaxrt as rt
+from jaxrt._src import pipeline
 from jaxrt._src.pipeline import resolve_backend as _resolve_backend
 from jaxrt._src.primitives import triangle
 from jaxrt._src.traversal import gpu, packed
@@ -281,7 +282,23 @@ def fresh_caches():
     jax.clear_caches()
 
 
-def test_gpu_path_plumbing_with_emulated_kernel(monkeypatch, fresh_caches):
+@pytest.fixture
+def fresh_intersect_traces():
+    """Drops the traces of the intersect entry points and the kernel calls around a test, so that the test
+    traces the kernel path anew and leaves no trace of its replaced kernel behind. Unlike ``fresh_caches``
+    it keeps the session's other compiled programs (structure builds, other tests' traversals)."""
+
+    def drop():
+        gpu._traversal.cache_clear()
+        pipeline._intersect_jit.clear_cache()
+        pipeline._intersect_chunks.clear_cache()
+
+    drop()
+    yield
+    drop()
+
+
+def test_gpu_path_plumbing_with_emulated_kernel(monkeypatch, fresh_intersect_traces):
     """Dispatch, packing and the batching rule around the kernel, with the launch emulated on any backend."""
     calls: list[int] = []
     monkeypatch.setattr(gpu, "unavailable_reason", lambda intersector: None)
@@ -333,7 +350,7 @@ def test_gpu_path_plumbing_with_emulated_kernel(monkeypatch, fresh_caches):
     assert np.abs(np.asarray(g_fast)).sum() > 0
 
 
-def test_kernel_in_triton_interpreter(monkeypatch, fresh_caches):
+def test_kernel_in_triton_interpreter(monkeypatch, request):
     """The kernel itself (Triton's interpreter, on the CPU) against the portable traversal."""
     pytest.importorskip("triton")
     if os.environ.get("TRITON_INTERPRET") != "1":
@@ -346,6 +363,7 @@ def test_kernel_in_triton_interpreter(monkeypatch, fresh_caches):
         )
         assert done.returncode == 0, done.stdout[-4000:] + done.stderr[-2000:]
         return
+    request.getfixturevalue("fresh_caches")  # in the interpreter's process only
     from test_gpu_instanced import interpreted_launch
 
     monkeypatch.setattr(gpu, "unavailable_reason", lambda intersector: None)
