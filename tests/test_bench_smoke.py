@@ -112,3 +112,8 @@ def test_custom_geometry_bench_reports_analytic_spheres_exactly(tmp_path):
         hits["opaque, no filter"] == hits["opaque, filter (never called)"] == hits["non-opaque, filter accepting all"]
     )
     assert 0 < hits["non-opaque, alpha filter (~50% rejected)"] <= hits["opaque, no filter"]
+    # The same alpha test in an intersection query's loop commits the same hits.
+    assert (
+        hits["non-opaque, alpha test in an intersection query's loop (~50% rejected)"]
+        == hits["non-opaque, alpha filter (~50% rejected)"]
+    )

@@ -199,6 +199,32 @@ def test_inside_jit_and_vmap(kernel_path):
     assert INTERPRETED or ON_GPU
 
 
+@kernel_test
+def test_vmap_over_rays_and_structures(kernel_path, monkeypatch):
+    """``vmap`` over (rays, structure) pairs: one launch per wave traces both scenes (their leaves moved into
+    one index range, each ray's cursor with them), with many waves (one candidate each), and gives each pair
+    what tracing it alone gives (the same arithmetic; the kernel's built-in disk may round differently from
+    the portable one at a rim, which ``test_gpu_analytic.py`` covers)."""
+    few_candidates(monkeypatch, 1, 1)
+    scenes = [random_scene(9), random_scene(14)]
+    structures = [build(scene) for scene in scenes]
+    rays = [random_rays(10 + i, scene, RAYS // 2).ray() for i, scene in enumerate(scenes)]
+    stack = lambda *a: np.stack([np.asarray(x) for x in a])  # noqa: E731
+    user = intersector("gpu")
+    LAUNCHES.clear()
+    got = jax.jit(jax.vmap(user.intersect))(
+        jax.tree_util.tree_map(stack, *rays), jax.tree_util.tree_map(stack, *structures)
+    )
+    if not ON_GPU:
+        assert {n for _, n in LAUNCHES} == {RAYS} and len(LAUNCHES) >= 2  # both scenes in each wave's launch
+    for i in range(2):
+        one = jax.tree_util.tree_map(lambda a, i=i: a[i], got)
+        alone = user.intersect(rays[i], structures[i])
+        for name in ("type", "geometry_id", "primitive_id", "distance"):
+            np.testing.assert_array_equal(np.asarray(one[name]), np.asarray(alone[name]), err_msg=name)
+        assert (np.asarray(alone.type) == int(rt.IntersectionType.BOUNDING_BOX)).sum() > 5
+
+
 # --- filters that read only the primitive -------------------------------------------------------------------------
 
 
@@ -269,3 +295,46 @@ def test_filters_that_read_the_primitive_take_one_launch(query, kernel_path):
         for part, rtol in ((cylinder, 1e-3), (~cylinder, 1e-6)):
             np.testing.assert_allclose(np.asarray(got.distance)[part], np.asarray(want.distance)[part], rtol=rtol)
     assert (np.asarray(want.type) == int(rt.IntersectionType.TRIANGLE)).sum() > 10
+
+
+# --- intersection queries -----------------------------------------------------------------------------------------
+
+
+QUERY_RAYS = 64  # each listing is a launch for every ray: the interpreter's cost
+
+
+@kernel_test
+@pytest.mark.parametrize("listed", [8, 1])
+def test_intersection_query_lists_candidates_with_the_kernel(listed, kernel_path, monkeypatch):
+    """``rt.intersection_query`` of a static primitive structure lists its candidates with the kernel (``listed``
+    per launch; 1: a launch per candidate): Metal's alpha-test loop over non-opaque triangles and sphere boxes
+    commits what the intersector's filter and function accept, and ends with the intersector's hit."""
+    from test_query import _INTERSECTOR, _loop, _scene
+
+    from jaxrt._src import query
+
+    monkeypatch.setattr(query, "KERNEL_CANDIDATES", listed)
+    structure, rays = _scene(5)
+    rays = rt.Ray(
+        *(np.asarray(a)[:QUERY_RAYS] for a in (rays.origin, rays.direction, rays.min_distance, rays.max_distance))
+    )
+    assert query.lists_with_the_kernel(_INTERSECTOR, structure)
+    _loop.clear_cache()
+    LAUNCHES.clear()
+    got = _loop(structure, rays)
+    _loop.clear_cache()
+    if not ON_GPU:
+        assert LAUNCHES, "the query did not list with the kernel"
+    portable = rt.Intersector(
+        rt.tags.triangle_data, rt.tags.primitive_data, triangle_cull_mode="back", filter=_INTERSECTOR.filter,
+        intersection_functions=dict(_INTERSECTOR.intersection_functions), backend="portable",
+    )  # fmt: skip
+    want = portable.intersect(rays, structure)
+    for name in ("type", "primitive_id", "geometry_id"):
+        np.testing.assert_array_equal(np.asarray(got[name]), np.asarray(want[name]), err_msg=name)
+    kinds = np.asarray(want.type)
+    assert (kinds == int(rt.IntersectionType.TRIANGLE)).any() and (kinds == int(rt.IntersectionType.BOUNDING_BOX)).any()
+    # The kernel's triangle distances are the portable test's to an ulp; the loop's sphere test is compiled
+    # in another program (test_query.py).
+    np.testing.assert_allclose(np.asarray(got["distance"]), np.asarray(want.distance), rtol=4e-7)
+    np.testing.assert_array_equal(np.asarray(got["barycentric"]), np.asarray(want.triangle_barycentric_coord))

@@ -20,13 +20,21 @@ step it with ``lax.while_loop``::
 
 The intersector's ``filter`` and ``intersection_functions`` are not used: the loop decides. Results of a
 query are not differentiable (trace again with ``Intersector.intersect`` for gradients).
+
+On a GPU (where the intersector's backend is the GPU kernel), a query of a static primitive structure
+without curves lists its candidates with the kernel instead, as candidate waves do
+(:mod:`jaxrt._src.traversal.waves`): ``next`` serves the candidates of the last listing one by one, in
+``(distance, leaf)`` order, committing opaque triangles on the way, and when they run out the kernel lists
+the next :data:`KERNEL_CANDIDATES` past the last one, culled by the committed distance. Under ``jax.vmap``
+each listing is one launch for every ray that needs one. Candidates then come nearest first, so none behind
+the committed hit is presented; the committed result is the same.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -46,6 +54,9 @@ from jaxrt._src.traversal.step import RayConstants, State, select_level, start, 
 __all__ = ["IntersectionQuery", "intersection_query"]
 
 _NONE, _TRIANGLE, _BOX = int(IntersectionType.NONE), int(IntersectionType.TRIANGLE), int(IntersectionType.BOUNDING_BOX)
+
+#: Candidates the GPU kernel lists per ray and launch for a query (the query serves them one at a time).
+KERNEL_CANDIDATES = 8
 
 
 class _OpaqueLeaves:
@@ -72,13 +83,26 @@ def _candidate_table(view: SceneView) -> jax.Array:
     )
 
 
+class _Held:
+    """The structure of a query, held by reference outside the query's array leaves: a loop over queries under
+    ``jax.vmap`` batches every array of its carry, and a structure among them would be copied once per ray."""
+
+    def __init__(self, structure: Any):
+        self.structure = structure
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, _Held) and other.structure is self.structure
+
+    def __hash__(self) -> int:
+        return id(self.structure)
+
+
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class IntersectionQuery:
     """One ray's intersection query (Metal's ``intersection_query``): an immutable pytree; every method
     returns a new query. Build it with :func:`intersection_query`."""
 
-    structure: Any
     ray: RayConstants
     direction: jax.Array
     state: State
@@ -89,7 +113,17 @@ class IntersectionQuery:
     candidate_distance: jax.Array  # its distance (triangles) or box entry distance (boxes)
     candidate_chain: jax.Array  # (levels,) its instance chain (global ids, -1 past it)
     committed_chain: jax.Array  # (levels,) the committed hit's instance chain
+    cursor_distance: jax.Array  # kernel listing: the last candidate listed (distance)
+    cursor_leaf: jax.Array  # and leaf
+    more: jax.Array  # kernel listing: candidates past the cursor remain to be listed
     intersector: Any = dataclasses.field(metadata=dict(static=True))
+    held: _Held = dataclasses.field(metadata=dict(static=True))
+    listing: int = dataclasses.field(default=0, metadata=dict(static=True))  # 0: portable; K: kernel lists K
+
+    @property
+    def structure(self) -> Any:
+        """The acceleration structure the query traverses."""
+        return self.held.structure
 
     # --- stepping -----------------------------------------------------------------------------------------
 
@@ -102,11 +136,19 @@ class IntersectionQuery:
         """Advance to the next candidate (committing opaque hits on the way); ``has_candidate`` is False
         when the traversal has ended."""
         q = dataclasses.replace(self, candidate=jnp.int32(-1))
+        if self.listing:
+
+            def searching(q):
+                return ~q.has_candidate & ~q.state.done & ((q.pending_leaf[0] >= 0) | q.more)
+
+            return lax.while_loop(searching, lambda q: _serve(_list(q)), q)
 
         def searching(q):
             return ~q.has_candidate & ((q.pending_leaf[0] >= 0) | ~q.state.done)
 
-        return lax.while_loop(searching, lambda q: lax.cond(q.pending_leaf[0] >= 0, _pop, _advance, q), q)
+        # Both branches and a select rather than ``lax.cond``: under ``jax.vmap`` a cond with a batched
+        # predicate becomes a select whose operands, the structure's arrays among them, are copied per ray.
+        return lax.while_loop(searching, lambda q: _where(q.pending_leaf[0] >= 0, _pop(q), _advance(q)), q)
 
     def commit_triangle_intersection(self, accept: Any = True) -> IntersectionQuery:
         """Commit the current triangle candidate (where ``accept``)."""
@@ -330,6 +372,100 @@ def _advance(q: IntersectionQuery) -> IntersectionQuery:
     )
 
 
+def _where(condition: jax.Array, a: IntersectionQuery, b: IntersectionQuery) -> IntersectionQuery:
+    """``a`` where ``condition``, else ``b`` (field by field)."""
+    return jax.tree_util.tree_map(lambda x, y: jnp.where(condition, x, y), a, b)
+
+
+def _decided_by_the_loop(ray: Any, candidate: Any) -> Any:
+    """Stands for the boxes' function when the kernel lists them: the query's loop decides each box."""
+    raise NotImplementedError("an intersection query's loop decides its box candidates")
+
+
+def _lister(intersector: Any, view: SceneView, rays: Any) -> Any:
+    """The kernel's listing of candidates past a cursor (:func:`jaxrt._src.pipeline.wave_lister`)."""
+    from jaxrt._src.pipeline import wave_lister
+
+    return wave_lister(intersector, view, rays)
+
+
+def lists_with_the_kernel(intersector: Any, structure: Any) -> bool:
+    """Whether a query of ``structure`` lists its candidates with the GPU kernel: a static primitive structure
+    without curves, where the intersector's backend is the kernel."""
+    from jaxrt._src.pipeline import resolve_backend
+
+    if not isinstance(structure, PrimitiveAccelerationStructure) or structure.motion is not None:
+        return False
+    if any(g.kind == "curve" for g in structure.geometry_info):
+        return False
+    return resolve_backend(intersector) == "gpu"
+
+
+class _ListedRay(NamedTuple):
+    """One ray as the lister reads it (a batch of one)."""
+
+    origin: jax.Array
+    direction: jax.Array
+    t_min: jax.Array
+    mask: jax.Array
+
+
+def _list(q: IntersectionQuery) -> IntersectionQuery:
+    """List the next ``K`` candidates past the cursor (opaque triangles included), culled by the committed
+    distance, where none is left (elsewhere the ray is disabled in the launch, and nothing changes)."""
+    from jaxrt._src.intersector import Intersector
+
+    view, k = q._view, q.listing
+    boxes = {i: _decided_by_the_loop for i, g in enumerate(view.geometry_info) if g.kind == "bounding_box"}
+    lister_of = Intersector(triangle_cull_mode=q.intersector.triangle_cull_mode,
+                            front_facing_winding=q.intersector.front_facing_winding,
+                            intersection_functions=boxes or None)  # fmt: skip
+    ray = _ListedRay(q.ray.origin[None], q.direction[None], q.ray.t_min[None], jnp.full((1,), 0xFFFFFFFF, jnp.uint32))
+    needed = q.more & ~q.state.done & (q.pending_leaf[0] < 0)  # under vmap every ray passes here
+    found = _lister(lister_of, view, ray)(
+        k, q.state.distance[None], needed[None], q.cursor_distance[None], q.cursor_leaf[None]
+    ).hits
+    listed = jnp.arange(k) < jnp.minimum(found.total[0], k)
+    distance = jnp.where(listed, found.distance[0], jnp.inf).astype(q.candidate_distance.dtype)
+    leaf = jnp.where(listed, found.leaf[0], -1)
+    more = found.total[0] > k
+    return dataclasses.replace(
+        q,
+        pending_leaf=jnp.where(needed, leaf, q.pending_leaf),
+        pending_distance=jnp.where(needed, distance, q.pending_distance),
+        cursor_distance=jnp.where(needed & more, distance[k - 1], q.cursor_distance),
+        cursor_leaf=jnp.where(needed & more, leaf[k - 1], q.cursor_leaf),
+        more=jnp.where(needed, more, q.more),
+    )
+
+
+def _serve(q: IntersectionQuery) -> IntersectionQuery:
+    """Take the first listed candidate if it is not past the committed hit: an opaque triangle is committed,
+    anything else becomes the candidate. One past it ends the listing (the rest are farther still)."""
+    leaf, t = q.pending_leaf[0], q.pending_distance[0]
+    valid = (leaf >= 0) & (t <= q.state.distance)
+    beyond = (leaf >= 0) & ~valid
+    is_candidate = q._view.leaf_flag(_candidate_table(q._view), jnp.maximum(leaf, 0))
+    opaque = valid & ~is_candidate
+    state = q.state._replace(
+        distance=jnp.where(opaque, t, q.state.distance),
+        leaf=jnp.where(opaque, leaf, q.state.leaf),
+        done=q.state.done | (opaque & q.intersector.accept_any_intersection),
+    )
+    chosen = valid & is_candidate
+    shifted_leaf = jnp.concatenate([q.pending_leaf[1:], jnp.full((1,), -1, jnp.int32)])
+    shifted_distance = jnp.concatenate([q.pending_distance[1:], jnp.full((1,), jnp.inf, t.dtype)])
+    return dataclasses.replace(
+        q,
+        state=state,
+        pending_leaf=jnp.where(beyond, -1, shifted_leaf),
+        pending_distance=jnp.where(beyond, jnp.inf, shifted_distance),
+        more=q.more & ~beyond,
+        candidate=jnp.where(chosen, leaf, -1),
+        candidate_distance=jnp.where(chosen, t, jnp.inf),
+    )
+
+
 def intersection_query(rays: Ray, structure: PrimitiveAccelerationStructure, intersector: Any) -> IntersectionQuery:
     """Start an intersection query of one ray (batch with ``jax.vmap``); call ``next()`` to reach the first
     candidate. The intersector supplies cull mode, winding and ``accept_any_intersection``.
@@ -368,17 +504,23 @@ def intersection_query(rays: Ray, structure: PrimitiveAccelerationStructure, int
         _tester(intersector, view), view.layout, origin, direction, ray.t_min, ray.t_max, ray.enabled, ray.mask
     )
     no_chain = jnp.full((view.levels,), -1, jnp.int32)
+    listing = KERNEL_CANDIDATES if lists_with_the_kernel(intersector, structure) else 0
+    pending = listing or 2
     return IntersectionQuery(
-        structure=structure,
         ray=constants,
         direction=direction,
         state=state,
-        pending_leaf=jnp.full((2,), -1, jnp.int32),
-        pending_distance=jnp.full((2,), jnp.inf, origin.dtype),
+        pending_leaf=jnp.full((pending,), -1, jnp.int32),
+        pending_distance=jnp.full((pending,), jnp.inf, origin.dtype),
         pending_chain=no_chain,
         candidate=jnp.int32(-1),
         candidate_distance=jnp.asarray(jnp.inf, origin.dtype),
         candidate_chain=no_chain,
         committed_chain=no_chain,
+        cursor_distance=jnp.asarray(-jnp.inf, origin.dtype),
+        cursor_leaf=jnp.int32(-1),
+        more=~state.done,
         intersector=intersector,
+        held=_Held(structure),
+        listing=listing,
     )

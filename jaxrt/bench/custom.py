@@ -13,7 +13,8 @@ Two tables:
    never uses), non-opaque with a filter that accepts everything, non-opaque with an alpha filter that
    rejects about half the triangles by their primitive data (decided once per primitive on the GPU), and one
    that reads the hit's barycentrics (called per candidate, in candidate waves on the GPU); also the 4
-   nearest hits (``max_hits=4``) and ``count_intersections``.
+   nearest hits (``max_hits=4``), ``count_intersections``, and the alpha filter as the loop of an
+   intersection query (``rt.intersection_query``: on the GPU the kernel lists its candidates).
    Each row of both tables names the traversal that ran (``path``: the GPU kernel, the CPU traversal or the
    portable one).
 
@@ -36,6 +37,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax import lax
 
 import jaxrt as rt
 from jaxrt._src import pipeline
@@ -214,7 +216,33 @@ def bench_filters(triangles: int, n_rays: int, repeats: int, seed: int = 0) -> l
     timing, counts = timed(lambda: count(rays, opaque), repeats)
     rows.append({"case": "opaque, count_intersections", "trace": timing.as_dict(n), "hits": int(np.sum(counts > 0)),
                  "path": traversal_path(_CountingIntersector(), opaque)})  # fmt: skip
+    timing, distance = timed(lambda: _alpha_query(rays, clear), repeats)
+    rows.append({"case": "non-opaque, alpha test in an intersection query's loop (~50% rejected)",
+                 "trace": timing.as_dict(n), "hits": int(np.sum(np.isfinite(np.asarray(distance)))),
+                 "path": query_path(rt.Intersector(), clear)})  # fmt: skip
     return rows
+
+
+@jax.jit
+def _alpha_query(rays: rt.Ray, structure: Any) -> jax.Array:
+    """The alpha filter as Metal's intersection-query loop: each candidate committed where its alpha passes."""
+
+    def one(ray):
+        def body(q):
+            return q.commit_triangle_intersection(q.candidate_primitive_data["alpha"] >= 0.5).next()
+
+        q = rt.intersection_query(ray, structure, rt.Intersector())
+        return lax.while_loop(lambda q: q.has_candidate, body, q.next()).committed_distance
+
+    return jax.vmap(one)(rays)
+
+
+def query_path(intersector: rt.Intersector, structure: Any) -> str:
+    """How ``rt.intersection_query`` finds candidates on this machine: ``"gpu kernel (listing)"`` or
+    ``"portable"`` (its traversal, stepped per candidate)."""
+    from jaxrt._src import query
+
+    return "gpu kernel (listing)" if query.lists_with_the_kernel(intersector, structure) else "portable"
 
 
 @functools.partial(jax.jit, static_argnums=(0, 4))

@@ -91,6 +91,8 @@ SCENE_ARGS = 16
 #: leaf, root); a prepacked call appends the structure's node and triangle rows
 #: (:class:`~jaxrt._src.traversal.packed.KernelLayout`).
 RAY_ARGS = 10
+#: The position of the cursor leaf among them.
+CURSOR_LEAF = 8
 
 
 #: Default :attr:`KernelOptions.curve_batch`; the environment variable ``JAXRT_CURVE_BATCH`` (read at import)
@@ -445,12 +447,18 @@ def _batched_scenes(config: _Config, call_for, axis_size: int, in_batched, args)
     scene, rays = args[:SCENE_ARGS], args[SCENE_ARGS:]
     n = rays[0].shape[1]
     flat_scene, flat_root, p, g = _concatenate_scenes(scene, rays[-1])
+    index = jnp.arange(axis_size, dtype=jnp.int32)[:, None]
+    cursor_leaf = rays[CURSOR_LEAF]  # a leaf of its own scene: moved with the scene's leaves
+    rays = [
+        *rays[:CURSOR_LEAF],
+        jnp.where(cursor_leaf >= 0, cursor_leaf + index * p, cursor_leaf),
+        *rays[CURSOR_LEAF + 1 :],
+    ]
     flat_rays = [a.reshape(axis_size * n, *a.shape[2:]) for a in rays[:-1]]
     _check_indices(flat_scene[2].shape[0], axis_size * g, config.levels)
     options = dataclasses.replace(config.options, node_width=2)
     batched = dataclasses.replace(config, primitive_leaves=axis_size * p, options=options, roots=True)
     distance, leaf, chain, visited, tested, overflow, *hit_list = call_for(batched)(*flat_scene, *flat_rays, flat_root)
-    index = jnp.arange(axis_size, dtype=jnp.int32)[:, None]
     leaf = leaf.reshape(axis_size, n)
     leaf = jnp.where(leaf >= 0, leaf - index * p, leaf)
     chain = chain.reshape(axis_size, n, config.levels)
