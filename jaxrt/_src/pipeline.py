@@ -108,7 +108,7 @@ def kernel_declines(
     moving = motion or any(g.motion for g in geometry_info)
     # User code per candidate: the GPU kernel lists candidates in waves (traversal.waves) in a static primitive
     # structure without curves.
-    in_waves = backend == "gpu" and not levels and not moving and "curve" not in kinds
+    in_waves = backend == "gpu" and waves.covers(geometry_info, motion=motion, levels=levels)
     if "curve" in kinds:
         if backend == "cpu":
             return f"curves are not covered by the {name}"

@@ -49,6 +49,7 @@ from jaxrt._src.ray import Ray
 from jaxrt._src.result import IntersectionType
 from jaxrt._src.scene_view import SceneView, primitive_structures, scene_view
 from jaxrt._src.structures import PrimitiveAccelerationStructure
+from jaxrt._src.traversal import waves
 from jaxrt._src.traversal.step import RayConstants, State, select_level, start, step
 
 __all__ = ["IntersectionQuery", "intersection_query"]
@@ -390,15 +391,15 @@ def _lister(intersector: Any, view: SceneView, rays: Any) -> Any:
 
 
 def lists_with_the_kernel(intersector: Any, structure: Any) -> bool:
-    """Whether a query of ``structure`` lists its candidates with the GPU kernel: a static primitive structure
-    without curves, where the intersector's backend is the kernel."""
+    """Whether a query of ``structure`` lists its candidates with the GPU kernel: where candidate waves cover
+    the structure (:func:`jaxrt._src.traversal.waves.covers`) and the intersector's backend is the kernel."""
     from jaxrt._src.pipeline import resolve_backend
 
-    if not isinstance(structure, PrimitiveAccelerationStructure) or structure.motion is not None:
+    if not isinstance(structure, PrimitiveAccelerationStructure):
         return False
-    if any(g.kind == "curve" for g in structure.geometry_info):
-        return False
-    return resolve_backend(intersector) == "gpu"
+    return waves.covers(structure.geometry_info, motion=structure.motion is not None) and (
+        resolve_backend(intersector) == "gpu"
+    )
 
 
 class _ListedRay(NamedTuple):

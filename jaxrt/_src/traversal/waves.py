@@ -42,7 +42,16 @@ from jaxrt._src.traversal import step
 from jaxrt._src.traversal.scene import TraversalResult
 from jaxrt._src.traversal.step import HitList
 
-__all__ = ["CANDIDATES", "LATER_CANDIDATES", "WaveLoop", "WaveState", "needs_waves", "trace_waves", "user_functions"]
+__all__ = [
+    "CANDIDATES",
+    "LATER_CANDIDATES",
+    "WaveLoop",
+    "WaveState",
+    "covers",
+    "needs_waves",
+    "trace_waves",
+    "user_functions",
+]
 
 
 def _candidate_counts(setting: str) -> tuple[int, int]:
@@ -55,6 +64,13 @@ def _candidate_counts(setting: str) -> tuple[int, int]:
 #: need those, and more candidates per wave end the tail in fewer waves. ``JAXRT_WAVE_CANDIDATES`` (``K`` or
 #: ``K,LATER``, read at import) overrides them for benches.
 CANDIDATES, LATER_CANDIDATES = _candidate_counts(os.environ.get("JAXRT_WAVE_CANDIDATES", "4,16"))
+
+
+def covers(geometry_info: tuple, *, motion: bool = False, levels: int = 0) -> bool:
+    """Whether the GPU kernel lists candidates for a scene of these geometries: a static (no keyframe motion,
+    ``motion`` nor any geometry's) primitive structure (``levels == 0``) without curves."""
+    moving = motion or any(g.motion for g in geometry_info)
+    return not levels and not moving and all(g.kind != "curve" for g in geometry_info)
 
 
 def user_functions(intersector: Any) -> bool:
