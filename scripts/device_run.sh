@@ -10,6 +10,9 @@
 #   bash scripts/device_run.sh kerneltests  the analytic, multi-hit and curve kernel tests on the GPU
 #   bash scripts/device_run.sh waves    the custom bench with its table of candidate waves (several candidates per
 #                                       wave) at 65,536 and 1,048,576 rays, then the candidate-wave kernel tests
+#   bash scripts/device_run.sh fused    the fused-ray kernel tests, then the GPU bench with its kernel variants and
+#                                       intersect on fused rays and on a packed ray block (sphere, soup, bunny, dragon;
+#                                       the meshes copied to .meshes/)
 #   bash scripts/device_run.sh curvebatch  curve bench with deferred curve tests off and at two thresholds (each row
 #                                          compared bit for bit with the first), then a few curve kernel tests
 set -uo pipefail
@@ -53,6 +56,12 @@ case $part in
     step custom 200 python3 -m jaxrt.bench.custom --json "$out/custom.json"
     step curves 380 python3 -m jaxrt.bench.curves --scenes ponytail bear --settings 8,3 --tubes 6,2 \
       --json "$out/curves.json"
+    ;;
+  fused)
+    step fused_tests 200 python3 -m pytest tests/test_gpu_fused_rays.py tests/test_gpu.py tests/test_kernel_layout.py \
+      tests/test_gpu_compiles.py -q -p no:cacheprovider -rs -k "not interpreter"
+    step bench_gpu 380 python3 -m jaxrt.bench.gpu --variants --repeats 5 --portable-rays 262144 --meshes .meshes \
+      --scenes sphere,soup,bunny,dragon --quality fast --json "$out/bench_gpu.json"
     ;;
   kerneltests)
     step kernel_tests 560 python3 -m pytest tests/test_gpu_analytic.py tests/test_gpu_multihit.py \

@@ -30,12 +30,12 @@ def compile_trace_kernel(config: Any, params: dict | None = None, stage: str = "
     call = gpu.kernel_call(jnp.zeros((1, 16)), jnp.zeros((1, 12)), jnp.zeros((1, 16)), jnp.zeros((20, 64)), config)
     constants = {**call.params, **(params or {})}
     arrays = [a for a in call.args if not isinstance(a, int)] + list(call.out_shape)
-    kinds = iter("*fp32" if a.dtype == jnp.float32 else "*i32" for a in arrays)
+    kinds = iter({jnp.float32: "*fp32", jnp.bool_: "*i1"}.get(a.dtype.type, "*i32") for a in arrays)
     signature = {}
     for name in fn.arg_names:
         if name in constants:
             signature[name] = "constexpr"
-        elif name in ("n_rays", "n_programs", "n_primitives"):
+        elif name in ("n_rays", "n_programs", "n_primitives", "n_real"):
             signature[name] = "i32"
         else:
             signature[name] = next(kinds)

@@ -51,3 +51,12 @@ def test_kernel_compiles_to_a_cuda_binary(name):
     config = dataclasses.replace(BASE, **VARIANTS[name])
     binary = compile_trace_kernel(config, stage="cubin")
     assert isinstance(binary, bytes) and binary[:4] == b"\x7fELF"
+
+
+@pytest.mark.parametrize("name", ["static", "any hit, culling", "max_hits 4", "counting"])
+def test_kernel_with_fused_rays_compiles_to_a_cuda_binary(name):
+    """The kernel that reads the caller's ray arrays (``KernelOptions.fused_rays``: primitive structures whose
+    rays need only the basic block)."""
+    config = dataclasses.replace(BASE, **VARIANTS.get(name, dict(count=True)))
+    binary = compile_trace_kernel(config, params=dict(FUSED_RAYS=True), stage="cubin")
+    assert isinstance(binary, bytes) and binary[:4] == b"\x7fELF"

@@ -215,10 +215,10 @@ def interpreted_launch(call: gpu.KernelCall) -> tuple[jax.Array, ...]:
 
     kernel = getattr(triton_kernel, call.kernel)
     results = gpu.returned(call)
-    rays = call.args[3] if call.kernel == "trace_kernel" else call.args[2]
+    lanes = call.args[4] if call.kernel == "trace_kernel" else call.args[3]  # rays traced, padding included
 
     def host(*arrays):
-        LAUNCHES.append((call.kernel, int(rays.shape[1])))
+        LAUNCHES.append((call.kernel, int(lanes)))
         inputs = iter(arrays)
         args = [a if isinstance(a, int) else _HostArray(np.asarray(next(inputs))) for a in call.args]
         outs = [_HostArray(np.full(s.shape, -7 if s.dtype == jnp.int32 else np.nan, s.dtype)) for s in call.out_shape]

@@ -26,6 +26,7 @@ The SAH cost is ``(sum of internal node areas + sum of leaf areas * primitives p
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import statistics
@@ -40,6 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxrt as rt
+from jaxrt._src import pipeline
 from jaxrt._src.pipeline import enabled_rays as _enabled
 from jaxrt._src.pipeline import resolve_backend as _resolve_backend
 from jaxrt._src.traversal import gpu, packed
@@ -71,6 +73,7 @@ VARIANTS = {
         "default": gpu.DEFAULT_OPTIONS,
         "scalar-loads": dataclasses.replace(gpu.DEFAULT_OPTIONS, vector_loads=not gpu.DEFAULT_OPTIONS.vector_loads),
         "64-rays": dataclasses.replace(gpu.DEFAULT_OPTIONS, rays_per_program=64),
+        "ray-block": dataclasses.replace(gpu.DEFAULT_OPTIONS, fused_rays=not gpu.DEFAULT_OPTIONS.fused_rays),
         "binary": dataclasses.replace(gpu.DEFAULT_OPTIONS, node_width=2),
         "wide-leaf-4": dataclasses.replace(gpu.DEFAULT_OPTIONS, node_width=4, leaf_size=4),
         "wide-leaf-2": dataclasses.replace(gpu.DEFAULT_OPTIONS, node_width=4, leaf_size=2),
@@ -196,7 +199,9 @@ def _agreement(a: np.ndarray, b: np.ndarray) -> dict[str, int]:
 
 
 def _bench_kernel(structure, rays: dict[str, jax.Array], any_hit: bool, options: gpu.KernelOptions, repeats: int):
-    """Kernel-only timing on pre-packed arrays; returns (seconds, pipelined seconds, leaf array)."""
+    """Kernel-only timing on pre-packed scene arrays; returns (seconds, pipelined seconds, leaf array). With
+    ``options.fused_rays`` (binary nodes) the kernel reads the ray arrays as given, as a Warp query does; else
+    it reads a ray block packed beforehand."""
     from jaxrt._src.scene_view import traversal_scene
 
     n = rays["origin"].shape[0]
@@ -212,7 +217,11 @@ def _bench_kernel(structure, rays: dict[str, jax.Array], any_hit: bool, options:
         any_hit=any_hit, cull=0, stack=layout.stack_size, levels=0, primitive_leaves=layout.primitive_leaves,
         options=options, roots=False,
     )  # fmt: skip
-    launch = jax.jit(lambda nd, tr, ins, rb: gpu._launch(gpu.kernel_call(nd, tr, ins, rb, config)))
+    ray_input = lambda rb: rb  # noqa: E731
+    if options.fused_rays and options.node_width == 2:
+        block = tuple(rays[k] for k in ("origin", "direction", "t_min", "t_max", "enabled"))
+        ray_input = lambda rb: gpu.FusedRays(*rb, size)  # noqa: E731
+    launch = jax.jit(lambda nd, tr, ins, rb: gpu._launch(gpu.kernel_call(nd, tr, ins, ray_input(rb), config)))
     out = jax.block_until_ready(launch(nodes, triangles, instances, block))
     seconds = _median_s(lambda: launch(nodes, triangles, instances, block), repeats)
     pipelined = _pipelined_s(lambda: launch(nodes, triangles, instances, block), 20)
@@ -348,7 +357,39 @@ def _bench_query(structures: dict, batch: RayBatch, any_hit: bool, portable_rays
         "mrays_s": n_rays / _median_s(lambda: fast(full, structure), repeats) / 1e6,
         "pipelined_mrays_s": n_rays / _pipelined_s(lambda: fast(full, structure), 20) / 1e6,
     }
+    if variants:  # intersect with the other ray input (a packed ray block, or the fused rays)
+        other = VARIANTS["ray-block"]
+        with _default_kernel_options(other):
+            slow = jax.jit(rt.Intersector(backend="gpu", accept_any_intersection=any_hit).intersect)
+            same = jax.block_until_ready(slow(full, structure))
+            q["intersect_ray_block" if not other.fused_rays else "intersect_fused_rays"] = {
+                "tree": first,
+                "pipelined_mrays_s": n_rays / _pipelined_s(lambda: slow(full, structure), 20) / 1e6,
+                "bitwise_equal": all(
+                    np.array_equal(np.asarray(a), np.asarray(b), equal_nan=True)
+                    for a, b in zip(jax.tree.leaves(same), jax.tree.leaves(fast(full, structure)), strict=True)
+                ),
+            }
     return q
+
+
+@contextlib.contextmanager
+def _default_kernel_options(options: gpu.KernelOptions):
+    """Trace ``Intersector.intersect`` with other default kernel options (their traces dropped before and after)."""
+    saved = gpu.DEFAULT_OPTIONS
+
+    def drop():
+        gpu._traversal.cache_clear()
+        pipeline._intersect_jit.clear_cache()
+        pipeline._intersect_chunks.clear_cache()
+
+    gpu.DEFAULT_OPTIONS = options
+    drop()
+    try:
+        yield
+    finally:
+        gpu.DEFAULT_OPTIONS = saved
+        drop()
 
 
 def _build_fn(quality: str):
@@ -552,7 +593,10 @@ def format_table(results: dict[str, Any]) -> str:
     variant_rows, labels = [], []
     for name, s in results["scenes"].items():
         for query, q in s["queries"].items():
-            runs = q.get("kernel", {}).get(qualities[0], {})
+            runs = dict(q.get("kernel", {}).get(qualities[0], {}))
+            for key in ("intersect", "intersect_ray_block", "intersect_fused_rays"):
+                if len(runs) > 1 and key in q:
+                    runs[key.replace("_", " ")] = q[key]
             if len(runs) > 1:
                 labels = list(runs)
                 cells = [
@@ -560,6 +604,11 @@ def format_table(results: dict[str, Any]) -> str:
                     + (
                         f" ({r['mismatch_vs_portable']['hit_miss']}/{r['mismatch_vs_portable']['primitive']})"
                         if "mismatch_vs_portable" in r
+                        else ""
+                    )
+                    + (
+                        {True: " (fields bit-equal)", False: " (fields differ)"}[r["bitwise_equal"]]
+                        if "bitwise_equal" in r
                         else ""
                     )
                     for r in runs.values()

@@ -121,6 +121,10 @@ class KernelOptions:
         until this many rays of the warp wait (or none other can step), so that one warp-wide curve test serves
         them all; the other rays keep taking steps meanwhile. Each ray makes the same decisions either way.
         0 tests curves on sight (each step that needs one runs the whole test for the warp).
+      fused_rays: where the rays need only the basic ray block (a primitive structure without motion, analytic
+        leaves or curves; binary nodes; float32 rays), the kernel reads the caller's ray arrays and computes
+        each ray's reciprocal direction and shear itself, as the packing does, instead of a ray block packed
+        by a separate XLA program per call. The same results either way.
 
     The defaults were the fastest on an H200 (``python -m jaxrt.bench.gpu --variants``).
     """
@@ -132,6 +136,7 @@ class KernelOptions:
     node_width: int = 2
     leaf_size: int = 4
     curve_batch: int = CURVE_BATCH
+    fused_rays: bool = True
 
     def __post_init__(self):
         if self.node_width not in (2, 4):
@@ -174,6 +179,19 @@ class _Config:
     @property
     def motion(self) -> bool:
         return bool(self.node_keys or self.leaf_keys or self.instance_keys)
+
+
+class FusedRays(NamedTuple):
+    """The caller's rays, read by the kernel itself (``KernelOptions.fused_rays``): float32 ``(N, 3)`` origins
+    and directions, ``(N,)`` intervals and enabled flags, traced in ``size`` lanes (a multiple of the rays per
+    program; the lanes past ``N`` are disabled rays)."""
+
+    origin: jax.Array
+    direction: jax.Array
+    t_min: jax.Array
+    t_max: jax.Array
+    enabled: jax.Array
+    size: int
 
 
 class KernelCall(NamedTuple):
@@ -229,15 +247,17 @@ def kernel_call(
     nodes: jax.Array,
     triangles: jax.Array,
     instances: jax.Array,
-    rays: jax.Array,
+    rays: jax.Array | FusedRays,
     config: _Config,
     instance_motion: jax.Array | None = None,
     curves: jax.Array | None = None,
 ):
-    """The :class:`KernelCall` tracing the packed ``rays`` block through the packed scene (with keyframe
-    motion, ``nodes`` and ``triangles`` are the rows per keyframe and ``instance_motion`` the instance motion
-    rows; with curves, ``curves`` the curve rows: :mod:`jaxrt._src.traversal.packed`)."""
-    size = rays.shape[1]
+    """The :class:`KernelCall` tracing the packed ``rays`` block (or the caller's arrays, :class:`FusedRays`)
+    through the packed scene (with keyframe motion, ``nodes`` and ``triangles`` are the rows per keyframe and
+    ``instance_motion`` the instance motion rows; with curves, ``curves`` the curve rows:
+    :mod:`jaxrt._src.traversal.packed`)."""
+    fused = isinstance(rays, FusedRays)
+    size = rays.size if fused else rays.shape[1]
     options = config.options
     lanes = options.rays_per_program
     programs = max(1, min(size // lanes, MAX_PROGRAMS))
@@ -290,7 +310,7 @@ def kernel_call(
     )
     batched = config.curves and levels == 0 and options.leaf_branch
     params.update(CURVE_BATCH=min(options.curve_batch, lanes) if batched else 0)
-    params.update(CURSOR=config.cursor)
+    params.update(CURSOR=config.cursor, FUSED_RAYS=fused)
     k = config.max_hits
     extra = (
         jax.ShapeDtypeStruct((max(1, levels * size),), jnp.int32),  # instance chain, (levels, size)
@@ -305,7 +325,14 @@ def kernel_call(
         instance_motion = jnp.zeros((1,), jnp.float32)
     if curves is None:
         curves = jnp.zeros((1,), jnp.float32)
-    args = (nodes, triangles, instances, rays, size, programs, config.primitive_leaves, instance_motion, curves)
+    if fused:
+        ray_args = (rays.origin, size, programs, config.primitive_leaves, instance_motion, curves, *rays[1:5])
+        ray_args += (rays.origin.shape[0],)
+    else:
+        unread = jnp.zeros((1,), jnp.float32)
+        ray_args = (rays, size, programs, config.primitive_leaves, instance_motion, curves, unread, unread, unread)
+        ray_args += (jnp.zeros((1,), bool), size)
+    args = (nodes, triangles, instances, *ray_args)
     return KernelCall("trace_kernel", programs, args, results + extra, params, 10 if config.hit_list else 6)
 
 
@@ -379,19 +406,28 @@ def _kernel(*args, config: _Config) -> tuple[jax.Array, ...]:
             zero = jnp.zeros(time.shape, jnp.int32)
             position = KeyframePosition(zero, zero.astype(jnp.float32), jnp.ones(time.shape, bool))
         motion = (position.index, position.weight, position.visible, time)
-    rays = packed.pack_rays(
-        origin,
-        direction,
-        t_min,
-        t_max,
-        enabled,
-        size,
-        mask=mask if extended else None,
-        root=root if extended else None,
-        motion=motion,
-        curve_frame=_curve_frames(origin, direction) if config.curves else None,
-        cursor=(cursor_t, cursor_leaf) if config.cursor else None,
+    fused = (
+        config.options.fused_rays
+        and config.options.node_width == 2
+        and not extended
+        and all(a.dtype == jnp.float32 for a in (origin, direction, t_min, t_max))
     )
+    if fused:
+        rays = FusedRays(origin, direction, t_min, t_max, enabled, size)
+    else:
+        rays = packed.pack_rays(
+            origin,
+            direction,
+            t_min,
+            t_max,
+            enabled,
+            size,
+            mask=mask if extended else None,
+            root=root if extended else None,
+            motion=motion,
+            curve_frame=_curve_frames(origin, direction) if config.curves else None,
+            cursor=(cursor_t, cursor_leaf) if config.cursor else None,
+        )
     moving_instances = instance_motion if config.instance_keys else None
     curves = curve_rows if config.curves else None
     out = _launch(kernel_call(nodes, triangles, instances, rays, config, moving_instances, curves))

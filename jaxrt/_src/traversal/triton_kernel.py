@@ -384,6 +384,37 @@ def _load_ray(rays_ptr, n_rays, ray):
 
 
 @triton.jit
+def _load_fused_ray(
+    origin_ptr, direction_ptr, t_min_ptr, t_max_ptr, enabled_ptr, n_real, ray,
+    CLAMP: tl.constexpr, HUGE: tl.constexpr, CLAMPED: tl.constexpr,
+):  # fmt: skip
+    """:func:`_load_ray` from the caller's ray arrays (``(N, 3)`` origins and directions, ``(N,)`` intervals and
+    enabled flags, float32): the reciprocal direction and the shear computed here as
+    :func:`jaxrt._src.traversal.packed.pack_rays` computes them (so bit for bit the same constants); a lane
+    past the ``n_real`` rays is a disabled ray."""
+    real = ray < n_real
+    ox = tl.load(origin_ptr + 3 * ray, mask=real, other=0.0)
+    oy = tl.load(origin_ptr + 3 * ray + 1, mask=real, other=0.0)
+    oz = tl.load(origin_ptr + 3 * ray + 2, mask=real, other=0.0)
+    dx = tl.load(direction_ptr + 3 * ray, mask=real, other=1.0)
+    dy = tl.load(direction_ptr + 3 * ray + 1, mask=real, other=1.0)
+    dz = tl.load(direction_ptr + 3 * ray + 2, mask=real, other=1.0)
+    t_min = tl.load(t_min_ptr + ray, mask=real, other=0.0)
+    t_max = tl.load(t_max_ptr + ray, mask=real, other=0.0)
+    enabled = real & (tl.load(enabled_ptr + ray, mask=real, other=0).to(tl.int32) != 0)
+    ix = _safe_reciprocal(dx, CLAMP, HUGE, CLAMPED)
+    iy = _safe_reciprocal(dy, CLAMP, HUGE, CLAMPED)
+    iz = _safe_reciprocal(dz, CLAMP, HUGE, CLAMPED)
+    kx, ky, kz, sx, sy, sz = _shear(dx, dy, dz)
+    okx = _select(kx, ox, oy, oz)
+    oky = _select(ky, ox, oy, oz)
+    okz = _select(kz, ox, oy, oz)
+    distance = tl.where(enabled, t_max, float("-inf"))
+    done = tl.where(enabled, 0, 1)
+    return ox, oy, oz, ix, iy, iz, sx, sy, sz, t_min, kx, ky, kz, okx, oky, okz, distance, done
+
+
+@triton.jit
 def _store_result(
     distance_ptr, leaf_ptr, visited_ptr, tested_ptr, overflow_ptr, ray, distance, leaf, visited, tested, overflow
 ):
@@ -801,6 +832,11 @@ def trace_kernel(
     n_primitives,
     imotion_ptr,
     curves_ptr,
+    ray_direction_ptr,
+    ray_t_min_ptr,
+    ray_t_max_ptr,
+    ray_enabled_ptr,
+    n_real,
     distance_ptr,
     leaf_ptr,
     visited_ptr,
@@ -843,6 +879,7 @@ def trace_kernel(
     FLAT: tl.constexpr = 0,
     CURVE_BATCH: tl.constexpr = 0,
     CURSOR: tl.constexpr = False,
+    FUSED_RAYS: tl.constexpr = False,
 ):
     """Trace ``n_rays`` rays (a multiple of ``LANES``); outputs as :class:`~jaxrt._src.traversal.scene.TraversalResult`.
 
@@ -877,6 +914,12 @@ def trace_kernel(
     ``PIECES`` to ``FLAT`` are :func:`~jaxrt._src.traversal.triton_curves.curve_leaf`'s). ``CURVE_BATCH > 0``
     defers curve tests until that many lanes wait for one (or no other lane can step; see the module
     docstring): the same results, fewer warp-wide curve tests. 0 tests them on sight (binary nodes, ``BRANCH``).
+
+    Fused rays (``FUSED_RAYS``, a primitive structure whose ray block would have the 16 basic rows): the kernel
+    reads the caller's arrays instead of a packed ray block, ``rays_ptr`` the ``(N, 3)`` origins,
+    ``ray_direction_ptr`` the directions, ``ray_t_min_ptr``, ``ray_t_max_ptr`` and ``ray_enabled_ptr`` the
+    intervals and enabled flags of the first ``n_real`` rays (:func:`_load_fused_ray`); otherwise those four
+    arguments are not read.
     """
     pid = tl.program_id(0)
     lane = tl.arange(0, LANES)
@@ -886,9 +929,15 @@ def trace_kernel(
     block = pid
     while block < n_rays // LANES:
         ray = block * LANES + lane
-        ox, oy, oz, ix, iy, iz, sx, sy, sz, t_min, kx, ky, kz, okx, oky, okz, distance, done = _load_ray(
-            rays_ptr, n_rays, ray
-        )
+        if FUSED_RAYS:
+            ox, oy, oz, ix, iy, iz, sx, sy, sz, t_min, kx, ky, kz, okx, oky, okz, distance, done = _load_fused_ray(
+                rays_ptr, ray_direction_ptr, ray_t_min_ptr, ray_t_max_ptr, ray_enabled_ptr, n_real, ray, CLAMP, HUGE,
+                CLAMPED,
+            )  # fmt: skip
+        else:
+            ox, oy, oz, ix, iy, iz, sx, sy, sz, t_min, kx, ky, kz, okx, oky, okz, distance, done = _load_ray(
+                rays_ptr, n_rays, ray
+            )
         if ROOTS:
             node = tl.load(rays_ptr + 16 * n_rays + ray).to(tl.int32, bitcast=True)
         else:
