@@ -58,9 +58,11 @@ case $part in
       --json "$out/curves.json"
     ;;
   fused)
-    step fused_tests 200 python3 -m pytest tests/test_gpu_fused_rays.py tests/test_gpu.py tests/test_kernel_layout.py \
-      tests/test_gpu_compiles.py -q -p no:cacheprovider -rs -k "not interpreter"
-    step bench_gpu 380 python3 -m jaxrt.bench.gpu --variants --repeats 5 --portable-rays 262144 --meshes .meshes \
+    step fused_tests 200 python3 -m pytest tests/test_gpu_fused_rays.py tests/test_gpu.py -q -p no:cacheprovider -rs \
+      -k "not interpreter" -x
+    step instanced_tests 150 python3 -m pytest tests/test_gpu_instanced.py -q -p no:cacheprovider -rs \
+      -k "not interpreter" -x
+    step bench_gpu 200 python3 -m jaxrt.bench.gpu --variants ray-block --repeats 5 --portable-rays 262144 --meshes .meshes \
       --scenes sphere,soup,bunny,dragon --quality fast --json "$out/bench_gpu.json"
     ;;
   kerneltests)

@@ -305,7 +305,9 @@ def _bench_warp(scene, batches: dict[str, RayBatch], repeats: int) -> dict[str, 
     return out
 
 
-def _bench_query(structures: dict, batch: RayBatch, any_hit: bool, portable_rays: int, repeats: int, variants: bool):
+def _bench_query(
+    structures: dict, batch: RayBatch, any_hit: bool, portable_rays: int, repeats: int, variants: str | None
+):
     """The jaxrt measurements of one ray set: portable path, kernel on every tree (variants on the first),
     trace and intersect on the first tree."""
     n_rays = len(batch)
@@ -326,7 +328,11 @@ def _bench_query(structures: dict, batch: RayBatch, any_hit: bool, portable_rays
         return q
     rays = _device_rays(batch)
     for quality, tree in structures.items():
-        runs = VARIANTS.items() if variants and quality == first else [("default", gpu.DEFAULT_OPTIONS)]
+        runs = [("default", gpu.DEFAULT_OPTIONS)]
+        if variants and quality == first:
+            runs = [
+                (k, v) for k, v in VARIANTS.items() if k == "default" or variants == "all" or k in variants.split(",")
+            ]
         q["kernel"][quality] = {}
         for label, options in runs:
             s, p, leaf, visited = _bench_kernel(tree, rays, any_hit, options, repeats)
@@ -440,7 +446,7 @@ def bench_scene(
     n_rays: int,
     portable_rays: int,
     repeats: int,
-    variants: bool,
+    variants: str | None,
     peers: bool,
     qualities: tuple[str, ...] = QUALITIES,
     mesh_dir: str | None = None,
@@ -643,7 +649,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument(
         "--quality", default=",".join(QUALITIES), help="build qualities to trace, first is the reference"
     )
-    parser.add_argument("--variants", action="store_true", help="also time kernel code-generation variants")
+    parser.add_argument(
+        "--variants",
+        nargs="?",
+        const="all",
+        help=f"also time kernel code-generation variants: all, or some of {', '.join(VARIANTS)} (comma-separated)",
+    )
     parser.add_argument("--build-sizes", default="", help="extra build-only sizes, e.g. 10000000 (comma-separated)")
     parser.add_argument("--build-scenes", default="sphere,soup", help="procedural scenes of --build-sizes")
     parser.add_argument("--huge-rays", type=int, default=0, help="also trace this many rays in one intersect call")
