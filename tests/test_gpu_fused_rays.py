@@ -85,3 +85,40 @@ def test_fused_rays_equal_the_packed_block(kernel_here, monkeypatch, options):
     portable = rt.Intersector(*tags, backend="portable", **options).intersect(rays, structure)
     np.testing.assert_array_equal(np.asarray(want["type"]), np.asarray(portable["type"]))
     np.testing.assert_array_equal(np.asarray(want["primitive_id"]), np.asarray(portable["primitive_id"]))
+
+
+@pytest.mark.skipif(not ON_GPU, reason="needs a CUDA GPU with Triton and jax-triton")
+def test_xla_divides_as_the_kernel_divides():
+    """The kernel computes a ray's reciprocal and shear with Triton's ``/`` because XLA's GPU backend divides
+    with the same (approximate) instruction: every quotient and reciprocal equal bit for bit, over a wide range
+    of magnitudes with zeros, signed zeros, infinities and NaN. Should XLA change its division, this fails
+    and the kernel's ``_safe_reciprocal`` and ``_shear`` must follow."""
+    import jax.numpy as jnp
+    import jax_triton as jt
+    import triton
+    import triton.language as tl
+
+    @triton.jit
+    def divide(a_ptr, b_ptr, quotient_ptr, reciprocal_ptr, BLOCK: tl.constexpr):
+        i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+        a = tl.load(a_ptr + i)
+        b = tl.load(b_ptr + i)
+        tl.store(quotient_ptr + i, a / b)
+        tl.store(reciprocal_ptr + i, 1.0 / b)
+
+    rng = np.random.default_rng(0)
+    n = 1 << 20
+    scale = lambda: np.float32(10.0) ** rng.integers(-30, 31, n).astype(np.float32)  # noqa: E731
+    a = (rng.standard_normal(n).astype(np.float32) * scale()).astype(np.float32)
+    b = (rng.standard_normal(n).astype(np.float32) * scale()).astype(np.float32)
+    b[:256], b[256:512], b[512:768], a[768:1024] = 0.0, -0.0, np.inf, np.nan
+    shape = jax.ShapeDtypeStruct((n,), jnp.float32)
+    quotient, reciprocal = jt.triton_call(
+        jnp.asarray(a), jnp.asarray(b), kernel=divide, out_shape=[shape, shape], grid=(n // 256,), BLOCK=256,
+        enable_fp_fusion=False,
+    )  # fmt: skip
+    for got, want in ((quotient, jax.jit(lambda x, y: x / y)(a, b)), (reciprocal, jax.jit(lambda y: 1.0 / y)(b))):
+        got, want = np.asarray(got), np.asarray(want)
+        np.testing.assert_array_equal(got, want)  # NaN where the other is NaN (payloads may differ)
+        number = ~np.isnan(want)
+        np.testing.assert_array_equal(np.signbit(got[number]), np.signbit(want[number]))  # signed zeros too

@@ -4,7 +4,8 @@ The kernel reads one node with four 16-byte loads and one triangle with three, s
 repacked into rows of float32 quads (children bit-cast to float32), 112 bytes per leaf slot. Structures built
 where the kernel runs hold these node and triangle rows (:class:`KernelLayout`, packed at build time and
 kept consistent by refit, compaction and loading); for other structures (and instanced scenes) the kernel
-call packs them per call. The ray block is packed in every call.
+call packs them per call. The ray block is packed in every call, except where the kernel reads the caller's
+ray arrays itself (``KernelOptions.fused_rays``: a primitive structure whose rays need only the 16 basic rows).
 
 Node row, ``(C-1, 16)`` float32, one per internal node (both child boxes in the parent, as in Aila & Laine,
 "Understanding the Efficiency of Ray Traversal on GPUs", HPG 2009):
