@@ -7,7 +7,9 @@ reports each build's time and SAH cost, then traces three ray sets of :mod:`jaxr
 (camera, scanline order) and diffuse (cosine-weighted from surface points) rays for the nearest hit, and
 shadow rays to a point light for any hit. It times
 
-- ``kernel``: the Triton kernel alone on arrays packed beforehand (what a peer's query call does), per tree;
+- ``kernel``: the Triton kernel alone on the structure's rows packed beforehand and on the ray arrays as given
+  (``KernelOptions.fused_rays``; what a peer's query call does), per tree; ``--variants ray-block`` adds the
+  kernel on a ray block packed beforehand, and ``intersect`` with the block packed in the call;
 - ``trace``: the kernel with the packing of nodes, triangles and rays (``traversal.gpu.trace``);
 - ``intersect``: ``Intersector.intersect`` with the result fields (what users call);
 - ``portable``: ``Intersector(backend="portable")`` on the same device (``--portable-rays 0`` skips it);
