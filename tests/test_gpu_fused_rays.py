@@ -1,7 +1,7 @@
 """The GPU kernel reading the caller's ray arrays (``KernelOptions.fused_rays``) against the packed ray block.
 
-With fused rays the kernel computes each ray's reciprocal direction and watertight shear itself (correctly
-rounded divisions, as XLA's), so every result field must be bit for bit the one traced from the block that
+With fused rays the kernel computes each ray's reciprocal direction and watertight shear itself (dividing as
+XLA divides on the GPU), so every result field must be bit for bit the one traced from the block that
 ``packed.pack_rays`` builds, on rays whose constants are the hard ones: axis-parallel directions (clamped
 reciprocals), signed zeros, components below the clamp and above its inverse, negative dominant axes (swapped
 shear axes), disabled rays, and a ray count that is not a multiple of the rays per program. As in

@@ -214,15 +214,17 @@ def _bench_kernel(structure, rays: dict[str, jax.Array], any_hit: bool, options:
     instances = packed.pack_instances(
         scene.instance_world_to_object, scene.instance_child_root, scene.instance_facing, scene.instance_mask
     )
-    block = packed.pack_rays(rays["origin"], rays["direction"], rays["t_min"], rays["t_max"], rays["enabled"], size)
     config = gpu._Config(
         any_hit=any_hit, cull=0, stack=layout.stack_size, levels=0, primitive_leaves=layout.primitive_leaves,
         options=options, roots=False,
     )  # fmt: skip
-    ray_input = lambda rb: rb  # noqa: E731
+    arrays = tuple(rays[k] for k in ("origin", "direction", "t_min", "t_max", "enabled"))
     if options.fused_rays and options.node_width == 2:
-        block = tuple(rays[k] for k in ("origin", "direction", "t_min", "t_max", "enabled"))
+        block = arrays
         ray_input = lambda rb: gpu.FusedRays(*rb, size)  # noqa: E731
+    else:
+        block = packed.pack_rays(*arrays, size)
+        ray_input = lambda rb: rb  # noqa: E731
     launch = jax.jit(lambda nd, tr, ins, rb: gpu._launch(gpu.kernel_call(nd, tr, ins, ray_input(rb), config)))
     out = jax.block_until_ready(launch(nodes, triangles, instances, block))
     seconds = _median_s(lambda: launch(nodes, triangles, instances, block), repeats)

@@ -375,12 +375,20 @@ def _load_ray(rays_ptr, n_rays, ray):
     ky = tl.load(rays_ptr + 12 * n_rays + ray).to(tl.int32)
     kz = tl.load(rays_ptr + 13 * n_rays + ray).to(tl.int32)
     enabled = tl.load(rays_ptr + 14 * n_rays + ray) != 0
+    okx, oky, okz, distance, done = _ray_start(ox, oy, oz, kx, ky, kz, enabled, bound)
+    return ox, oy, oz, ix, iy, iz, sx, sy, sz, t_min, kx, ky, kz, okx, oky, okz, distance, done
+
+
+@triton.jit
+def _ray_start(ox, oy, oz, kx, ky, kz, enabled, t_max):
+    """A loaded ray's origin in its sheared axes, its initial distance bound (``-inf`` for a disabled ray, so
+    that it never hits) and ``done``."""
     okx = _select(kx, ox, oy, oz)
     oky = _select(ky, ox, oy, oz)
     okz = _select(kz, ox, oy, oz)
-    distance = tl.where(enabled, bound, float("-inf"))
+    distance = tl.where(enabled, t_max, float("-inf"))
     done = tl.where(enabled, 0, 1)
-    return ox, oy, oz, ix, iy, iz, sx, sy, sz, t_min, kx, ky, kz, okx, oky, okz, distance, done
+    return okx, oky, okz, distance, done
 
 
 @triton.jit
@@ -406,11 +414,7 @@ def _load_fused_ray(
     iy = _safe_reciprocal(dy, CLAMP, HUGE, CLAMPED)
     iz = _safe_reciprocal(dz, CLAMP, HUGE, CLAMPED)
     kx, ky, kz, sx, sy, sz = _shear(dx, dy, dz)
-    okx = _select(kx, ox, oy, oz)
-    oky = _select(ky, ox, oy, oz)
-    okz = _select(kz, ox, oy, oz)
-    distance = tl.where(enabled, t_max, float("-inf"))
-    done = tl.where(enabled, 0, 1)
+    okx, oky, okz, distance, done = _ray_start(ox, oy, oz, kx, ky, kz, enabled, t_max)
     return ox, oy, oz, ix, iy, iz, sx, sy, sz, t_min, kx, ky, kz, okx, oky, okz, distance, done
 
 
