@@ -5,8 +5,9 @@ use; ``cache=True`` keeps the machine code on disk for later processes).
 
 Each ray runs the loop of :mod:`jaxrt._src.traversal.step` sequentially: one internal node per iteration, both
 child boxes with the conservative slab test (Ize 2013), the primitives of leaf children tested on sight with the
-watertight test (Woop, Benthin, Wald 2013), the nearer inner child entered and the farther one pushed, and the
-instance transition (ray moved by the instance's world-to-object rows, facing multiplied along the chain).
+watertight test (Woop, Benthin, Wald 2013), the nearer inner child entered and the farther one pushed (the
+any-hit order of :func:`_first`), and the instance transition (ray moved by the instance's world-to-object
+rows, facing multiplied along the chain).
 :func:`trace_rays` is the general loop; :func:`trace_flat` the same loop for a primitive structure of triangles
 with a nearest or any-hit query (no instance, hit-list or analytic bookkeeping per visit), which tests both
 child boxes of a node in one vector slab test (:func:`_box_pair`, on the node rows of :func:`box_rows`) for rays
@@ -279,6 +280,18 @@ def _triangle(v, o0, o1, o2, kx, ky, kz, sx, sy, sz, t_min, t_max, cull, inf):
     bx, by, z1 = _sheared(v[3], v[4], v[5], o0, o1, o2, kx, ky, kz, sx, sy, sz)
     cx, cy, z2 = _sheared(v[6], v[7], v[8], o0, o1, o2, kx, ky, kz, sx, sy, sz)
     return _watertight(ax, ay, z0, bx, by, z1, cx, cy, z2, t_min, t_max, cull, inf)
+
+
+@numba.njit(cache=True, inline="always")
+def _first(near0, near1, t_min, any_hit):
+    """Whether child 0 is entered first when both are: the nearer entry first; with ``any_hit``, a box that
+    holds the ray's start (entry ``t_min``) after one entered ahead (the portable ``step._any_hit_order``)."""
+    if any_hit:
+        start0 = near0 <= t_min
+        start1 = near1 <= t_min
+        if start0 != start1:
+            return start1
+    return near0 <= near1
 
 
 @numba.njit(cache=True)
@@ -557,7 +570,7 @@ def trace_rays(
                     leaf = hit_leaf[0] if k > 0 else first
                 finished = False
                 if inner0 and inner1:
-                    if near0 <= near1:
+                    if _first(near0, near1, t_min, any_hit):
                         near, far = e0, e1
                     else:
                         near, far = e1, e0
@@ -708,7 +721,7 @@ def trace_flat(
                 inner0 = hit0 and c0 >= 0
                 inner1 = hit1 and c1 >= 0
                 if inner0 and inner1:
-                    if near0 <= near1:
+                    if _first(near0, near1, t_min, any_hit):
                         near, far = c0, c1
                     else:
                         near, far = c1, c0

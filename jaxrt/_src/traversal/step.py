@@ -9,7 +9,8 @@ test, tests the primitives of leaf children at once, then enters the nearer inne
 one (nearest child first, the "while-while" loop of Aila & Laine 2009, with leaves tested on sight). Under
 ``vmap`` both children's leaf tests run on every step (lanes are selected), so testing leaves on sight, rather
 than pushing them, halves the number of steps for about the same work per step. Any-hit mode stops at the
-first accepted hit.
+first accepted hit, and enters a child box that holds the ray's start after one the ray enters ahead
+(:func:`_any_hit_order`).
 
 Instances (``levels > 0``): a leaf child that is an instance is treated like an inner child (ordered by entry
 distance, pushed when it is the farther one), and skipped like a missed box when ``instance_mask & ray.mask``
@@ -223,6 +224,16 @@ def start(
     return ray, state
 
 
+def _any_hit_order(near_first: jax.Array, t_near: jax.Array, t_min: jax.Array) -> jax.Array:
+    """Any-hit order: a child box that holds the ray's start (its entry clamped to ``t_min``) is entered after
+    one the ray enters ahead; otherwise the nearer first. Rays that need any hit mostly leave a surface (shadow
+    and occlusion rays): the box around their start holds that surface and its neighbours, which such a ray
+    seldom meets, while a box it enters ahead lies across its path. Camera rays from outside the scene start
+    in no child box, and keep the nearest-first order."""
+    starts = t_near <= t_min
+    return jnp.where(starts[0] != starts[1], starts[1], near_first)
+
+
 def visit(
     scene: TraversalScene,
     layout: TraversalLayout,
@@ -289,6 +300,8 @@ def visit(
     entry = jnp.where(is_instance, -1 - instance, children) if levels else children
     inner = box_hit & (~is_leaf | (is_instance & visible)) if levels else box_hit & ~is_leaf
     near_first = t_near[0] <= t_near[1]
+    if any_hit:
+        near_first = _any_hit_order(near_first, t_near, ray.t_min)
     near = jnp.where(near_first, entry[0], entry[1])
     far = jnp.where(near_first, entry[1], entry[0])
     both = inner[0] & inner[1]

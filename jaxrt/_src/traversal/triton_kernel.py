@@ -5,7 +5,8 @@ Imported only where Triton is installed (see :mod:`jaxrt._src.traversal.gpu`). I
 :mod:`jaxrt._src.traversal.stack`: both child boxes tested with the conservative slab test (Ize 2013, with
 the same handling of zero direction components), leaf children tested on sight with the watertight triangle
 test (Woop et al. 2013, edges evaluated in a canonical endpoint order), the nearer inner child entered and the
-farther one pushed, ties resolved the same way. The traversal order, and hence the chosen leaf among equally
+farther one pushed (in any-hit mode a box holding the ray's start after one entered ahead), ties resolved the
+same way. The traversal order, and hence the chosen leaf among equally
 distant hits and the first accepted hit in any-hit mode, are those of the portable path wherever both compute
 the same values.
 
@@ -1170,6 +1171,10 @@ def trace_kernel(
             best_t = tl.where(second, t1, t0)
             best_leaf = tl.where(second, -1 - c1, -1 - c0)
             near_first = near0 <= near1
+            if ANY_HIT:  # a box holding the ray's start after one entered ahead (the portable _any_hit_order)
+                start0 = near0 <= t_min
+                start1 = near1 <= t_min
+                near_first = tl.where(start0 != start1, start1, near_first)
             if LEVELS > 0:
                 found = (h0 | h1) & ((best_t < distance) | ((leaf < 0) & (best_t <= distance)))
                 if MAX_HITS > 0:
