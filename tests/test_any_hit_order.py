@@ -25,7 +25,7 @@ SIZES = (2.0, 0.5, 2.0, 2.0)
 
 
 def _structures():
-    tri = np.array([[[-s, -s, z], [s, -s, z], [0.0, s, z]] for z, s in zip(DEPTHS, SIZES)], np.float32)
+    tri = np.array([[[-s, -s, z], [s, -s, z], [0.0, s, z]] for z, s in zip(DEPTHS, SIZES, strict=True)], np.float32)
     blas = rt.build_primitive_structure(rt.TriangleGeometry(tri.reshape(-1, 3)))
     instanced = rt.build_instance_structure([blas], rt.Instances([0], np.eye(3, 4, dtype=np.float32)[None]))
     return blas, instanced
