@@ -66,6 +66,33 @@ def test_straight_curves_exact(basis, count, curve_type):
     np.testing.assert_allclose((segment + u) / segments * 4.0, x, atol=2e-5)
 
 
+@pytest.mark.parametrize("basis,count", COMBOS)
+def test_straight_round_curves_meet_the_cylinder(basis, count):
+    """Rays that meet a straight round curve at |cos| >= 0.2 from random directions: the reported distance is
+    the float64 cylinder's entry within 1e-4 radii (the float32 limit there is about 1e-5)."""
+    rng = np.random.default_rng(11)
+    n = 256
+    x, phi = rng.uniform(0.3, 3.7, n), rng.uniform(0.0, 2 * np.pi, n)
+    normal = np.stack([np.zeros(n), np.cos(phi), np.sin(phi)], axis=1)
+    direction = rng.normal(size=(n, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    cos = np.einsum("ij,ij->i", direction, normal)
+    direction -= 2 * np.maximum(cos, 0.0)[:, None] * normal  # into the surface
+    steep = np.einsum("ij,ij->i", direction, normal) <= -0.2
+    surface = np.stack([x, RADIUS * normal[:, 1], RADIUS * normal[:, 2]], axis=1)
+    origin = (surface - 5.0 * direction).astype(np.float32)
+    direction = direction.astype(np.float32)
+    # The entry into the infinite cylinder y^2 + z^2 = r^2 of the float32 rays, in float64.
+    o, d = origin[:, 1:].astype(np.float64), direction[:, 1:].astype(np.float64)
+    a, b, c = (d * d).sum(1), 2 * (o * d).sum(1), (o * o).sum(1) - RADIUS**2
+    expected = (-b - np.sqrt(b * b - 4 * a * c)) / (2 * a)
+    geometry, _ = straight(basis, count)
+    hits = rt.Intersector().intersect(rt.Ray(origin, direction), rt.build_primitive_structure(geometry))
+    distance = np.asarray(hits.distance, np.float64)
+    assert steep.sum() > n // 2
+    np.testing.assert_array_less(np.abs(distance - expected)[steep] / RADIUS, 1e-4)
+
+
 @pytest.mark.parametrize("basis,count", [("catmull_rom", 4), ("bezier", 4), ("linear", 2)])
 def test_tangent_rays(basis, count):
     geometry, _ = straight(basis, count)

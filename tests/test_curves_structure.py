@@ -10,6 +10,8 @@ import pytest
 from test_curves_primitive import aimed_rays, run, strand
 
 import jaxrt as rt
+from jaxrt._src.curves import pack_segments
+from jaxrt._src.primitives import curve as primitive
 
 CURVE = int(rt.IntersectionType.CURVE)
 TRIANGLE = int(rt.IntersectionType.TRIANGLE)
@@ -56,19 +58,27 @@ def test_structure_equals_brute_force():
     brute = [run(g, origin, direction) for g in geometries]  # every segment, the same primitive test
     distance = np.concatenate([np.where(b.hit, b.distance, np.inf) for b in brute], axis=1)
     u = np.concatenate([b.u for b in brute], axis=1)
+    part = np.concatenate([b.part for b in brute], axis=1)
     nearest = distance.min(axis=1)
     hit = np.isfinite(nearest)
     np.testing.assert_array_equal(got["type"], np.where(hit, CURVE, NONE))
-    # The same primitive test compiled in another program: a few float32 ulps apart where XLA contracts
-    # multiply-adds differently (seen with jax 0.12); misses exactly.
-    np.testing.assert_allclose(got["distance"], nearest.astype(np.float32), rtol=5e-7)
+    # The brute-force nearest hit, polished to its root as the intersector reports it (smooth_hit).
     best = np.argmin(distance, axis=1)
     rows = np.arange(len(origin))
+    packed = np.concatenate([np.asarray(pack_segments(g)[0]) for g in geometries])
+    polish = jax.jit(jax.vmap(primitive.smooth_hit))
+    args = (origin, direction, packed[best], part[rows, best], u[rows, best], np.where(hit, nearest, 1.0))
+    polished_t, polished_u = (np.asarray(a) for a in polish(*(jnp.asarray(a) for a in args)))
+    # The same primitive test compiled in another program: a few float32 ulps apart where XLA contracts
+    # multiply-adds differently (seen with jax 0.12); misses exactly.
+    np.testing.assert_allclose(got["distance"], np.where(hit, polished_t, np.inf).astype(np.float32), rtol=5e-7)
     single = hit & ((distance == nearest[:, None]).sum(axis=1) == 1)
     segments = geometries[0].primitive_count
     np.testing.assert_array_equal(got["geometry_id"][single], (best >= segments)[single])
     np.testing.assert_array_equal(got["primitive_id"][single], (best % segments)[single])
-    np.testing.assert_allclose(got["curve_parameter"][single], u[rows, best][single], atol=1e-6)
+    np.testing.assert_allclose(got["curve_parameter"][single], polished_u[single], atol=1e-6)
+    # The polish moves a hit by less than the test's tolerance (1e-3 of the radius, here at most 0.05).
+    np.testing.assert_allclose(polished_t[hit], nearest[hit], rtol=0, atol=1e-3 * 0.05 + 1e-6)
     assert (got["primitive_id"][~hit] == -1).all() and (got["curve_parameter"][~hit] == 0).all()
     assert hit.sum() > 32
 

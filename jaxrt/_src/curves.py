@@ -605,8 +605,9 @@ def curve_hit_fields(leaf_curve, leaf_curve_flags, leaf, hit, origin, direction,
 
     ``leaf_curve`` and ``leaf_curve_flags`` are a scene's global curve leaves indexed by ``leaf``; ``origin``
     and ``direction`` are the ray in the hit's object space. The traversal only picks the leaf: the chosen segment is tested again
-    (exactly, for ``u``), then :func:`jaxrt._src.primitives.curve.smooth_hit` attaches derivatives with
-    respect to the segment's control points and radii and to the ray, keeping the exact values.
+    (exactly, for ``u``), then :func:`jaxrt._src.primitives.curve.smooth_hit` polishes a tube or ribbon hit
+    to its root and attaches derivatives with respect to the segment's control points and radii and to the
+    ray.
     """
     from jaxrt._src.primitives import curve as primitive
 
@@ -628,5 +629,5 @@ def curve_hit_fields(leaf_curve, leaf_curve_flags, leaf, hit, origin, direction,
     exact_t = jnp.where(is_curve, distance, 0.5)
     part = jnp.where(is_curve, again.part, primitive.PART_TUBE)
     u = jnp.where(is_curve, again.u, 0.5)
-    t, u = jax.vmap(primitive.smooth_hit)(ray_origin, ray_direction, segment, part, u, exact_t)
+    t, u = jax.vmap(primitive.smooth_hit)(ray_origin, ray_direction, segment, part, u, exact_t, t_min, t_max)
     return is_curve, t, u, part

@@ -715,11 +715,18 @@ def smooth_hit(
     part: jax.Array,
     u: jax.Array,
     distance: jax.Array,
+    t_min: jax.Array | float = -np.inf,
+    t_max: jax.Array | float = np.inf,
 ) -> tuple[jax.Array, jax.Array]:
-    """``(distance, u)`` of a hit found by :func:`intersect`, with derivatives (values unchanged).
+    """``(distance, u)`` of a hit found by :func:`intersect`, with derivatives.
 
     Tube and ribbon hits take the implicit-function derivative of their defining equations; cap hits the
     derivative of the sphere, disk or ray-facing disk they lie on. Misses must be given a dummy segment.
+
+    Values: a tube or ribbon hit is reported at its polished root (:data:`POLISH_STEPS` guarded Newton steps
+    in the hit's space from the test's answer, which stops within its tolerance of the root: on the bench's
+    fur about three times closer to the float64 reference, ``docs/curves.md``) where that root lies in
+    ``[t_min, t_max]``; other hits keep the test's values.
     """
     stop = lax.stop_gradient
     bezier = world_bezier(segment)
@@ -777,4 +784,10 @@ def smooth_hit(
         facing_t,
     )
     u_out = jnp.select([part == PART_TUBE, part == PART_RIBBON], [tube_u, ribbon_u], u0)
-    return _attach(distance, t_out), _attach(u, u_out)
+    ribbon_c0, _, _ = _evaluate(fixed[2], ribbon_u0)
+    ribbon_t0 = jnp.dot(ribbon_c0[:3] - fixed[0], fixed[1]) / jnp.dot(fixed[1], fixed[1])
+    polished_t = jnp.select([part == PART_TUBE, part == PART_RIBBON], [tube_t0, ribbon_t0], t0)
+    polished_u = jnp.select([part == PART_TUBE, part == PART_RIBBON], [tube_u0, ribbon_u0], u0)
+    inside = (polished_t >= t_min) & (polished_t <= t_max)
+    value_t, value_u = jnp.where(inside, polished_t, t0), jnp.where(inside, polished_u, u0)
+    return _attach(value_t, t_out), _attach(value_u, u_out)
