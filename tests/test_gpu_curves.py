@@ -77,6 +77,15 @@ def test_kernel_declines_instanced_and_moving_curves():
         assert "default JAX backend" in gpu.unavailable_reason(rt.Intersector(curve_type="round"))
 
 
+def test_every_tag_is_covered_by_the_kernel():
+    """Result fields are recomputed in JAX from the leaf, distance and instance chain the kernel returns, so no
+    tag may send a scene the kernel covers to the portable traversal (``curve_data`` once did, hair and all)."""
+    names = {tag.name for tag in vars(rt.tags).values() if isinstance(tag, rt.tags.Tag)}
+    names.add(rt.tags.max_levels(1).name)
+    assert {"curve_data", "normal", "triangle_data"} <= names
+    assert names <= gpu.COVERED_TAGS
+
+
 def test_forced_gpu_backend_names_the_reason():
     strands = rt.build_primitive_structure(hair(seed=2, strands=2, curve_type="flat"))
     structure = rt.build_instance_structure([strands], rt.Instances([0], np.eye(4, dtype=np.float32)[None, :3]))

@@ -72,6 +72,8 @@ __all__ = [
 COVERED_TAGS = frozenset(
     {
         "triangle_data",
+        "curve_data",
+        "normal",
         "stats",
         "primitive_data",
         "instancing",
