@@ -747,8 +747,9 @@ def smooth_hit(
     g, g_prime = _ribbon_system(origin, direction, power, ribbon_u0)
     g_prime = stop(g_prime)
     ribbon_u = ribbon_u0 - g / jnp.where(g_prime == 0, 1.0, g_prime)
-    ribbon_c, _, _ = _evaluate(power, ribbon_u)
-    ribbon_t = jnp.dot(ribbon_c[:3] - origin, direction) / dd
+    along = lambda c: jnp.dot(c[:3] - origin, direction) / dd  # noqa: E731
+    ribbon_t = along(_evaluate(power, ribbon_u)[0])
+    ribbon_t0 = along(_evaluate(power, ribbon_u0)[0])  # the polished root's distance (used as a value only)
 
     # Caps at the end u0 (0 or 1): sphere entry, end disk, ray-facing disk.
     end = jnp.where(u0 > 0.5, bezier[3], bezier[0])
@@ -783,11 +784,11 @@ def smooth_hit(
         [tube_t, ribbon_t, sphere_t, disk_t],
         facing_t,
     )
-    u_out = jnp.select([part == PART_TUBE, part == PART_RIBBON], [tube_u, ribbon_u], u0)
-    ribbon_c0, _, _ = _evaluate(fixed[2], ribbon_u0)
-    ribbon_t0 = jnp.dot(ribbon_c0[:3] - fixed[0], fixed[1]) / jnp.dot(fixed[1], fixed[1])
-    polished_t = jnp.select([part == PART_TUBE, part == PART_RIBBON], [tube_t0, ribbon_t0], t0)
-    polished_u = jnp.select([part == PART_TUBE, part == PART_RIBBON], [tube_u0, ribbon_u0], u0)
+    on_curve = [part == PART_TUBE, part == PART_RIBBON]
+    u_out = jnp.select(on_curve, [tube_u, ribbon_u], u0)
+    # The values: the polished root of a tube or ribbon hit where it lies in the ray's interval, else the test's.
+    polished_t = stop(jnp.select(on_curve, [tube_t0, ribbon_t0], t0))
+    polished_u = jnp.select(on_curve, [tube_u0, ribbon_u0], u0)
     inside = (polished_t >= t_min) & (polished_t <= t_max)
     value_t, value_u = jnp.where(inside, polished_t, t0), jnp.where(inside, polished_u, u0)
     return _attach(value_t, t_out), _attach(value_u, u_out)
