@@ -14,6 +14,9 @@
 #   programs  the instancing bench without the flattened scene, the kernel also under several program caps
 #   features  the GPU tests of the kernel, then the normal-tag, motion and point-query tests on the GPU backend
 #   points    the point-query bench (closest point, signed distance) with Warp's mesh queries beside it
+#   profile   Nsight Compute profiles (--set full) of one warm launch per SCENE:RAYS:TRACER in $PROFILES
+#             (scripts/kernel_profile.py runs the tracer; Warp tracers need the reassembled Warp), then the
+#             table of scripts/kernel_profile.py --report and the trace kernels' register and spill counts
 # "instanced" and "flat" run from snapshots of committed trees, so that uncommitted work in the working tree
 # cannot change what is measured: .snap/after (git archive HEAD jaxrt tests scripts pyproject.toml) and, for
 # "flat", .snap/before (git archive <commit> jaxrt); the bunny is read from .data/stanford-bunny/.
@@ -76,6 +79,39 @@ case $mode in
     export PYTHONPATH=$PYTHONPATH:/root/wsite JAXRT_DATA_DIR=$root/.data
     step points 400 python3 -m jaxrt.bench.points --peers --scenes sphere bunny --triangles 1000000 \
       --points 1048576 --reference-points 256 --repeats 3 --json "$out/points.json"
+    ;;
+  profile)
+    if [ -f .peers/warp-py.tgz ]; then
+      mkdir -p /root/wsite && tar xzf .peers/warp-py.tgz -C /root/wsite &&
+        cat /root/parts/warp.so.xz.part00 .peers/warp.so.xz.part01 .peers/warp.so.xz.part02 | xz -d > /root/wsite/warp/bin/warp.so || exit 1
+      export PYTHONPATH=$PYTHONPATH:/root/wsite
+    fi
+    export XLA_PYTHON_CLIENT_PREALLOCATE=false TRITON_CACHE_DIR=/tmp/triton-cache
+    mkdir -p "$out/ncu"
+    for spec in ${PROFILES:-bunny:primary:binary}; do
+      IFS=: read -r scene rays tracer <<< "$spec"
+      case $tracer in warp*) kernel='regex:closest|anyhit' ;; wide*) kernel=regex:trace_wide_kernel ;; *) kernel=regex:trace_kernel ;; esac
+      name=${scene}_${rays}_${tracer}
+      echo "=== $name"
+      # A plain run first compiles the kernel into the on-disk caches: compiling under ncu crashed (SIGSEGV).
+      timeout 120 python3 scripts/kernel_profile.py --scene "$scene" --rays "$rays" --tracer "$tracer" --meshes .meshes \
+        --calls 1 > "/tmp/$name.warm.log" 2>&1 || tail -3 "/tmp/$name.warm.log"
+      # ncu crashed (SIGSEGV) on about half of the launches of the same command: up to four tries.
+      for try in 1 2 3 4; do
+        timeout "${PROFILE_LIMIT:-150}" ncu --clock-control none --set full -k "$kernel" --launch-skip 1 \
+          --launch-count 1 -f -o "/tmp/$name" python3 scripts/kernel_profile.py --scene "$scene" --rays "$rays" \
+          --tracer "$tracer" --meshes .meshes > "/tmp/$name.log" 2>&1
+        code=$?; echo "try $try: exit $code"; [ $code = 0 ] && break
+      done
+      grep -v "^==PROF==" "/tmp/$name.log" | tail -2
+      ncu --import "/tmp/$name.ncu-rep" --page raw --csv > "$out/ncu/$name.csv" 2>&1
+      ncu --import "/tmp/$name.ncu-rep" --page details > "/tmp/$name.txt" 2>&1
+    done
+    (cd /tmp && tar czf "$out/ncu_details.tgz" ./*.txt)
+    for cubin in $(find /tmp/triton-cache -name "trace*.cubin" 2>/dev/null); do
+      echo "== $cubin"; cuobjdump --dump-resource-usage "$cubin" | grep -i "reg\|stack\|local" | head -5
+    done | tee "$out/resources.log"
+    python3 scripts/kernel_profile.py --report "$out/ncu" | tee "$out/profile_table.md"
     ;;
   tests)
     timeout 400 python3 -m pytest tests/test_gpu.py -v -p no:cacheprovider -rs -s --durations=5 2>&1 | tee "$out/tests.log"

@@ -222,6 +222,8 @@ def interpreted_launch(call: gpu.KernelCall) -> tuple[jax.Array, ...]:
         inputs = iter(arrays)
         args = [a if isinstance(a, int) else _HostArray(np.asarray(next(inputs))) for a in call.args]
         outs = [_HostArray(np.full(s.shape, -7 if s.dtype == jnp.int32 else np.nan, s.dtype)) for s in call.out_shape]
+        for index in call.zeroed:
+            outs[index].array[...] = 0
         kernel[(call.programs,)](*args, *outs, **call.params)
         return tuple(o.array for o in outs[:results])
 

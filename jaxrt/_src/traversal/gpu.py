@@ -87,6 +87,9 @@ COVERED_TAGS = frozenset(
 #: Most programs per launch; larger batches are walked with a stride, which bounds the scratch buffers (stack,
 #: and per-level rays below instances) to ``MAX_PROGRAMS * rays_per_program`` times the entries per ray.
 MAX_PROGRAMS = 1 << 15
+#: Programs per launch with :attr:`KernelOptions.work_stealing` (at most): about what an H200 keeps resident
+#: (132 multiprocessors, 28 one-warp programs each at the kernel's 64-69 registers), twice over.
+STEALING_PROGRAMS = 1 << 13
 #: Leading arguments of the kernel call that come from the scene (the rest are per ray).
 SCENE_ARGS = 16
 #: Per-ray arguments after them (origin, direction, t_min, t_max, enabled, mask, time, cursor distance, cursor
@@ -129,6 +132,10 @@ class KernelOptions:
         by a separate XLA program per call. The same results either way; on an H200 ``intersect`` gained
         1.10-1.13x on primary rays into small meshes, 1.02-1.05x on primary rays into 1M-triangle scenes and
         0.97-1.02x on diffuse and shadow rays (docs/performance.md, "Fused rays").
+      work_stealing: binary nodes without a hit list: at most :data:`STEALING_PROGRAMS` programs, each taking the
+        next untraced block of rays from a counter in device memory (an atomic add) until none is left, instead
+        of one program per block (or a fixed stride). The same results; on an H200 1.01-1.09x on the sphere,
+        0.99-1.01x elsewhere (docs/performance.md, "Where the kernel's time goes").
 
     The defaults were the fastest on an H200 (``python -m jaxrt.bench.gpu --variants``).
     """
@@ -141,6 +148,7 @@ class KernelOptions:
     leaf_size: int = 4
     curve_batch: int = CURVE_BATCH
     fused_rays: bool = True
+    work_stealing: bool = True
 
     def __post_init__(self):
         if self.node_width not in (2, 4):
@@ -207,6 +215,7 @@ class KernelCall(NamedTuple):
     out_shape: tuple  # outputs (the results first, then scratch buffers that are never read back)
     params: dict  # compile-time constants
     results: int = 0  # leading outputs read back (0: the traversal result, 6 or 5)
+    zeroed: tuple = ()  # outputs set to zero before the launch (the work-stealing counter)
 
 
 @functools.lru_cache(maxsize=1)
@@ -264,7 +273,8 @@ def kernel_call(
     size = rays.size if fused else rays.shape[1]
     options = config.options
     lanes = options.rays_per_program
-    programs = max(1, min(size // lanes, MAX_PROGRAMS))
+    steal = options.work_stealing and options.node_width == 2 and not config.hit_list
+    programs = max(1, min(size // lanes, MAX_PROGRAMS, STEALING_PROGRAMS if steal else MAX_PROGRAMS))
     params = dict(
         ANY_HIT=config.any_hit,
         CULL=config.cull,
@@ -314,7 +324,7 @@ def kernel_call(
     )
     batched = config.curves and levels == 0 and options.leaf_branch
     params.update(CURVE_BATCH=min(options.curve_batch, lanes) if batched else 0)
-    params.update(CURSOR=config.cursor, FUSED_RAYS=fused)
+    params.update(CURSOR=config.cursor, FUSED_RAYS=fused, STEAL=steal)
     k = config.max_hits
     extra = (
         jax.ShapeDtypeStruct((max(1, levels * size),), jnp.int32),  # instance chain, (levels, size)
@@ -324,6 +334,7 @@ def kernel_call(
         jax.ShapeDtypeStruct((max(1, k * levels * size),), jnp.int32),  # hit list chains, (K, levels, size)
         jax.ShapeDtypeStruct((programs * config.stack * lanes,), jnp.int32),  # stack scratch
         jax.ShapeDtypeStruct((max(1, programs * (levels + 1) * 8 * lanes),), jnp.float32),  # per-level rays
+        jax.ShapeDtypeStruct((1,), jnp.int32),  # blocks taken (work stealing)
     )
     if instance_motion is None:
         instance_motion = jnp.zeros((1,), jnp.float32)
@@ -337,7 +348,8 @@ def kernel_call(
         ray_args = (rays, size, programs, config.primitive_leaves, instance_motion, curves, unread, unread, unread)
         ray_args += (jnp.zeros((1,), bool), size)
     args = (nodes, triangles, instances, *ray_args)
-    return KernelCall("trace_kernel", programs, args, results + extra, params, 10 if config.hit_list else 6)
+    zeroed = (len(results) + len(extra) - 1,) if steal else ()
+    return KernelCall("trace_kernel", programs, args, results + extra, params, 10 if config.hit_list else 6, zeroed)
 
 
 def _launch(call: KernelCall) -> tuple[jax.Array, ...]:
@@ -354,6 +366,7 @@ def _launch(call: KernelCall) -> tuple[jax.Array, ...]:
         num_warps=1,
         num_stages=1,
         enable_fp_fusion=False,
+        zeroed_outputs=call.zeroed,
         **call.params,
     )
     return tuple(out[: returned(call)])

@@ -317,11 +317,14 @@ def _leaf(
 
 
 @triton.jit
-def _axis(lo, hi, o, inv, PARALLEL: tl.constexpr):
+def _axis(lo, hi, o, inv, PARALLEL: tl.constexpr, PLAIN: tl.constexpr):
     """Entry and exit distance of one slab; a zero direction component (clamped reciprocal) keeps the ray at
-    one coordinate: all of it is inside the slab (origin in ``[lo, hi]``) or none of it."""
+    one coordinate: all of it is inside the slab (origin in ``[lo, hi]``) or none of it. ``PLAIN``: no ray of
+    the warp has a zero component (the same values, without the test)."""
     t0 = (lo - o) * inv
     t1 = (hi - o) * inv
+    if PLAIN:
+        return tl.minimum(t0, t1), tl.maximum(t0, t1)
     parallel = tl.abs(inv) >= PARALLEL
     inside = (lo <= o) & (o <= hi)
     near = tl.where(parallel, tl.where(inside, float("-inf"), float("inf")), tl.minimum(t0, t1))
@@ -347,11 +350,12 @@ def _slab(
     t_max,
     FAR_SCALE: tl.constexpr,
     PARALLEL: tl.constexpr,
+    PLAIN: tl.constexpr = False,
 ):
-    """Conservative slab test of one child box: ``(hit, t_near, t_far)``."""
-    near_x, far_x = _axis(lo_x, hi_x, ox, ix, PARALLEL)
-    near_y, far_y = _axis(lo_y, hi_y, oy, iy, PARALLEL)
-    near_z, far_z = _axis(lo_z, hi_z, oz, iz, PARALLEL)
+    """Conservative slab test of one child box: ``(hit, t_near, t_far)`` (``PLAIN``: see :func:`_axis`)."""
+    near_x, far_x = _axis(lo_x, hi_x, ox, ix, PARALLEL, PLAIN)
+    near_y, far_y = _axis(lo_y, hi_y, oy, iy, PARALLEL, PLAIN)
+    near_z, far_z = _axis(lo_z, hi_z, oz, iz, PARALLEL, PLAIN)
     near = tl.maximum(tl.maximum(tl.maximum(near_x, near_y), near_z), t_min)
     far = tl.minimum(tl.minimum(tl.minimum(far_x, far_y), far_z) * FAR_SCALE, t_max)
     return (near <= far) & (lo_x <= hi_x), near, far
@@ -865,6 +869,7 @@ def trace_kernel(
     hit_chain_ptr,
     stack_ptr,
     level_ptr,
+    blocks_taken_ptr,
     STACK: tl.constexpr,
     ANY_HIT: tl.constexpr,
     CULL: tl.constexpr,
@@ -896,6 +901,7 @@ def trace_kernel(
     CURVE_BATCH: tl.constexpr = 0,
     CURSOR: tl.constexpr = False,
     FUSED_RAYS: tl.constexpr = False,
+    STEAL: tl.constexpr = False,
 ):
     """Trace ``n_rays`` rays (a multiple of ``LANES``); outputs as :class:`~jaxrt._src.traversal.scene.TraversalResult`.
 
@@ -930,6 +936,11 @@ def trace_kernel(
     ``PIECES`` to ``FLAT`` are :func:`~jaxrt._src.traversal.triton_curves.curve_leaf`'s). ``CURVE_BATCH > 0``
     defers curve tests until that many lanes wait for one (or no other lane can step; see the module
     docstring): the same results, fewer warp-wide curve tests. 0 tests them on sight (binary nodes, ``BRANCH``).
+
+    Work stealing (``STEAL``): the launch has fewer programs than blocks of ``LANES`` rays; after its first block
+    (its program id) a program takes the next block no program has taken, counted in ``blocks_taken_ptr``
+    (zeroed before the launch; the first ``n_programs`` blocks are taken by the program ids), so that
+    programs whose rays end early take more blocks. Otherwise programs stride by ``n_programs``.
 
     Fused rays (``FUSED_RAYS``, a primitive structure whose ray block would have the 16 basic rows): the kernel
     reads the caller's arrays instead of a packed ray block, ``rays_ptr`` the ``(N, 3)`` origins,
@@ -1018,6 +1029,13 @@ def trace_kernel(
             kept_near1 = tl.zeros((LANES,), tl.float32)
             kept_curve0 = tl.zeros((LANES,), tl.int1)
             kept_curve1 = tl.zeros((LANES,), tl.int1)
+        if LEVELS == 0:
+            # Warp-uniform: no live ray of the warp has a zero direction component, so every slab takes the plain
+            # min / max of its two distances (rays below instances change direction: they keep the full test).
+            parallel = (tl.abs(ix) >= PARALLEL) | (tl.abs(iy) >= PARALLEL) | (tl.abs(iz) >= PARALLEL)
+            plain = tl.max((parallel & (done == 0)).to(tl.int32), axis=0) == 0
+        else:
+            plain = False
         # One warp reduction per step: bit 0 / 1, some lane tests leaf child 0 / 1; bit 2, some lane was
         # active when the step began. The loop therefore ends one (fully masked, no-op) step after the last ray.
         go = tl.max(1 - done, axis=0)
@@ -1041,12 +1059,20 @@ def trace_kernel(
                 c0f, c1f, _, _ = _quad(nodes_ptr, node, 16, 12, fresh, LANES, VECTOR)
             c0 = c0f.to(tl.int32, bitcast=True)
             c1 = c1f.to(tl.int32, bitcast=True)
-            hit0, near0, far0 = _slab(
-                lo0x, hi0x, lo0y, hi0y, lo0z, hi0z, ox, oy, oz, ix, iy, iz, t_min, distance, FAR_SCALE, PARALLEL
-            )
-            hit1, near1, far1 = _slab(
-                lo1x, hi1x, lo1y, hi1y, lo1z, hi1z, ox, oy, oz, ix, iy, iz, t_min, distance, FAR_SCALE, PARALLEL
-            )
+            if plain:
+                hit0, near0, far0 = _slab(
+                    lo0x, hi0x, lo0y, hi0y, lo0z, hi0z, ox, oy, oz, ix, iy, iz, t_min, distance, FAR_SCALE, PARALLEL, True
+                )  # fmt: skip
+                hit1, near1, far1 = _slab(
+                    lo1x, hi1x, lo1y, hi1y, lo1z, hi1z, ox, oy, oz, ix, iy, iz, t_min, distance, FAR_SCALE, PARALLEL, True
+                )  # fmt: skip
+            else:
+                hit0, near0, far0 = _slab(
+                    lo0x, hi0x, lo0y, hi0y, lo0z, hi0z, ox, oy, oz, ix, iy, iz, t_min, distance, FAR_SCALE, PARALLEL
+                )
+                hit1, near1, far1 = _slab(
+                    lo1x, hi1x, lo1y, hi1y, lo1z, hi1z, ox, oy, oz, ix, iy, iz, t_min, distance, FAR_SCALE, PARALLEL
+                )
             hit0 = hit0 & fresh
             hit1 = hit1 & fresh
             if CURSOR:
@@ -1235,7 +1261,10 @@ def trace_kernel(
         if MAX_HITS > 0 or COUNT:
             tl.store(hit_total_ptr + ray, total)
         _store_result(distance_ptr, leaf_ptr, visited_ptr, tested_ptr, overflow_ptr, ray, distance, leaf, visited, tested, overflow)  # fmt: skip
-        block += n_programs
+        if STEAL:  # the next block no program has taken (the count starts at zero)
+            block = n_programs + tl.atomic_add(blocks_taken_ptr, 1)
+        else:
+            block += n_programs
 
 
 @triton.jit
