@@ -134,7 +134,7 @@ class KernelOptions:
         0.97-1.02x on diffuse and shadow rays (docs/performance.md, "Fused rays").
       work_stealing: binary nodes without a hit list: at most :data:`STEALING_PROGRAMS` programs, each taking the
         next untraced block of rays from a counter in device memory (an atomic add) until none is left, instead
-        of one program per block (or a fixed stride). The same results; on an H200 1.01-1.09x on the sphere,
+        of one program per block (or a fixed stride). The same results; on an H200 1.02-1.09x on the sphere,
         0.99-1.01x elsewhere (docs/performance.md, "Where the kernel's time goes").
 
     The defaults were the fastest on an H200 (``python -m jaxrt.bench.gpu --variants``).
