@@ -16,7 +16,7 @@
 #   points    the point-query bench (closest point, signed distance) with Warp's mesh queries beside it
 #   profile   Nsight Compute profiles (--set full) of one warm launch per SCENE:RAYS:TRACER in $PROFILES
 #             (scripts/kernel_profile.py runs the tracer; Warp tracers need the reassembled Warp), then the
-#             table of scripts/kernel_profile.py --report and the trace kernels' register and spill counts
+#             table of scripts/kernel_profile.py --report
 # "instanced" and "flat" run from snapshots of committed trees, so that uncommitted work in the working tree
 # cannot change what is measured: .snap/after (git archive HEAD jaxrt tests scripts pyproject.toml) and, for
 # "flat", .snap/before (git archive <commit> jaxrt); the bunny is read from .data/stanford-bunny/.
@@ -86,16 +86,13 @@ case $mode in
         cat /root/parts/warp.so.xz.part00 .peers/warp.so.xz.part01 .peers/warp.so.xz.part02 | xz -d > /root/wsite/warp/bin/warp.so || exit 1
       export PYTHONPATH=$PYTHONPATH:/root/wsite
     fi
-    export XLA_PYTHON_CLIENT_PREALLOCATE=false TRITON_CACHE_DIR=/tmp/triton-cache
+    export XLA_PYTHON_CLIENT_PREALLOCATE=false
     mkdir -p "$out/ncu"
     for spec in ${PROFILES:-bunny:primary:binary}; do
       IFS=: read -r scene rays tracer <<< "$spec"
       case $tracer in warp*) kernel='regex:closest|anyhit' ;; wide*) kernel=regex:trace_wide_kernel ;; *) kernel=regex:trace_kernel ;; esac
       name=${scene}_${rays}_${tracer}
       echo "=== $name"
-      # A plain run first compiles the kernel into the on-disk caches: compiling under ncu crashed (SIGSEGV).
-      timeout 120 python3 scripts/kernel_profile.py --scene "$scene" --rays "$rays" --tracer "$tracer" --meshes .meshes \
-        --calls 1 > "/tmp/$name.warm.log" 2>&1 || tail -3 "/tmp/$name.warm.log"
       # ncu crashed (SIGSEGV) on about half of the launches of the same command: up to four tries.
       for try in 1 2 3 4; do
         timeout "${PROFILE_LIMIT:-150}" ncu --clock-control none --set full -k "$kernel" --launch-skip 1 \
@@ -108,9 +105,6 @@ case $mode in
       ncu --import "/tmp/$name.ncu-rep" --page details > "/tmp/$name.txt" 2>&1
     done
     (cd /tmp && tar czf "$out/ncu_details.tgz" ./*.txt)
-    for cubin in $(find /tmp/triton-cache -name "trace*.cubin" 2>/dev/null); do
-      echo "== $cubin"; cuobjdump --dump-resource-usage "$cubin" | grep -i "reg\|stack\|local" | head -5
-    done | tee "$out/resources.log"
     python3 scripts/kernel_profile.py --report "$out/ncu" | tee "$out/profile_table.md"
     ;;
   tests)

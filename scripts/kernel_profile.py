@@ -80,8 +80,7 @@ def _run(args) -> None:
             wp.synchronize()
         print(f"{args.scene} {args.rays} {args.tracer}: hits {int((out.numpy() >= (1 if any_hit else 0)).sum())}")
         return
-    from jaxrt._src.scene_view import traversal_scene
-    from jaxrt._src.traversal import gpu, packed
+    from jaxrt._src.traversal import gpu
 
     quality = "high" if args.tracer == "high" else "fast"
     structure = jax.jit(lambda v, i: rt.build_primitive_structure(rt.TriangleGeometry(v, i), quality=quality))(
@@ -90,27 +89,10 @@ def _run(args) -> None:
     options = gpu.DEFAULT_OPTIONS
     if args.tracer.startswith("wide"):
         options = dataclasses.replace(options, node_width=4, leaf_size=int(args.tracer[4:]))
-    rays = bench._device_rays(batch)
     n = len(batch)
-    size = -(-n // options.rays_per_program) * options.rays_per_program
-    view, layout = traversal_scene(structure)
-    nodes = gpu.pack_nodes(options, view.node_lower, view.node_upper, view.node_children, view.node_range)
-    triangles = packed.pack_triangles(view.leaf_triangle)
-    instances = packed.pack_instances(
-        view.instance_world_to_object, view.instance_child_root, view.instance_facing, view.instance_mask
-    )
-    config = gpu._Config(
-        any_hit=any_hit, cull=0, stack=layout.stack_size, levels=0, primitive_leaves=layout.primitive_leaves,
-        options=options, roots=False,
-    )  # fmt: skip
-    arrays = tuple(rays[k] for k in ("origin", "direction", "t_min", "t_max", "enabled"))
-    if options.node_width == 2:
-        block, ray_input = arrays, (lambda rb: gpu.FusedRays(*rb, size))
-    else:
-        block, ray_input = packed.pack_rays(*arrays, size), (lambda rb: rb)
-    launch = jax.jit(lambda nd, tr, ins, rb: gpu._launch(gpu.kernel_call(nd, tr, ins, ray_input(rb), config)))
+    launch = bench.kernel_launch(structure, bench._device_rays(batch), any_hit, options)
     for _ in range(args.calls):
-        out = jax.block_until_ready(launch(nodes, triangles, instances, block))
+        out = jax.block_until_ready(launch())
     visited = np.asarray(out[2])[:n]
     print(
         f"{args.scene} {args.rays} {args.tracer}: hits {int((np.asarray(out[1])[:n] >= 0).sum())}, "

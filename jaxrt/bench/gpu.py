@@ -200,10 +200,12 @@ def _agreement(a: np.ndarray, b: np.ndarray) -> dict[str, int]:
     }
 
 
-def _bench_kernel(structure, rays: dict[str, jax.Array], any_hit: bool, options: gpu.KernelOptions, repeats: int):
-    """Kernel-only timing on pre-packed scene arrays; returns (seconds, pipelined seconds, leaf array). With
-    ``options.fused_rays`` (binary nodes) the kernel reads the ray arrays as given, as a Warp query does; else
-    it reads a ray block packed beforehand."""
+def kernel_launch(
+    structure, rays: dict[str, jax.Array], any_hit: bool, options: gpu.KernelOptions
+) -> Callable[[], tuple]:
+    """The kernel alone on the structure's pre-packed scene arrays: a function of no arguments that launches it
+    (jitted) and returns its outputs. With ``options.fused_rays`` (binary nodes) the kernel reads the ray arrays
+    as given, as a Warp query does; else it reads a ray block packed beforehand."""
     from jaxrt._src.scene_view import traversal_scene
 
     n = rays["origin"].shape[0]
@@ -226,9 +228,17 @@ def _bench_kernel(structure, rays: dict[str, jax.Array], any_hit: bool, options:
         block = packed.pack_rays(*arrays, size)
         ray_input = lambda rb: rb  # noqa: E731
     launch = jax.jit(lambda nd, tr, ins, rb: gpu._launch(gpu.kernel_call(nd, tr, ins, ray_input(rb), config)))
-    out = jax.block_until_ready(launch(nodes, triangles, instances, block))
-    seconds = _median_s(lambda: launch(nodes, triangles, instances, block), repeats)
-    pipelined = _pipelined_s(lambda: launch(nodes, triangles, instances, block), 20)
+    return lambda: launch(nodes, triangles, instances, block)
+
+
+def _bench_kernel(structure, rays: dict[str, jax.Array], any_hit: bool, options: gpu.KernelOptions, repeats: int):
+    """Kernel-only timing (:func:`kernel_launch`); returns (seconds, pipelined seconds, leaf array, nodes
+    visited)."""
+    n = rays["origin"].shape[0]
+    launch = kernel_launch(structure, rays, any_hit, options)
+    out = jax.block_until_ready(launch())
+    seconds = _median_s(launch, repeats)
+    pipelined = _pipelined_s(launch, 20)
     return seconds, pipelined, np.asarray(out[1])[:n], np.asarray(out[2])[:n]
 
 

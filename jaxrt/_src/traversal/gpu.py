@@ -274,7 +274,8 @@ def kernel_call(
     options = config.options
     lanes = options.rays_per_program
     steal = options.work_stealing and options.node_width == 2 and not config.hit_list
-    programs = max(1, min(size // lanes, MAX_PROGRAMS, STEALING_PROGRAMS if steal else MAX_PROGRAMS))
+    cap = min(MAX_PROGRAMS, STEALING_PROGRAMS) if steal else MAX_PROGRAMS
+    programs = max(1, min(size // lanes, cap))
     params = dict(
         ANY_HIT=config.any_hit,
         CULL=config.cull,
