@@ -357,8 +357,9 @@ def _launch(call: KernelCall) -> tuple[jax.Array, ...]:
     """Run one :class:`KernelCall` through jax-triton: ``(distance, leaf, visited, tested, overflow[, chain])``."""
     import jax_triton as jt
 
-    from jaxrt._src.traversal import triton_kernel
+    from jaxrt._src.traversal import kernel_cache, triton_kernel
 
+    kernel_cache.install()
     out = jt.triton_call(
         *call.args,
         kernel=getattr(triton_kernel, call.kernel),
