@@ -52,7 +52,12 @@ esac
 "$VENV/bin/python" -c 'import sys, jax, jaxlib; print(f"lane {sys.argv[1]}: Python {sys.version.split()[0]}, jax {jax.__version__}, jaxlib {jaxlib.__version__}")' "$LANE"
 "$VENV/bin/python" -m ruff check jaxrt tests examples
 status=0
-"$VENV/bin/python" -m pytest jaxrt tests -q -p no:cacheprovider "$@" || status=$?
+# One pytest worker per core (pytest-xdist), each test file kept on one worker so that its module-scoped
+# fixtures and compiled shapes are shared; JAXRT_TEST_WORKERS=0 runs in this process alone.
+WORKERS=${JAXRT_TEST_WORKERS:-auto}
+PARALLEL=()
+[ "$WORKERS" = 0 ] || PARALLEL=(-n "$WORKERS" --dist loadfile)
+"$VENV/bin/python" -m pytest jaxrt tests -q -p no:cacheprovider "${PARALLEL[@]}" "$@" || status=$?
 if [ "$status" -eq 5 ]; then
   echo "scripts/test.sh: lane $LANE collected no tests (pytest exit 5): failing" >&2
   status=1

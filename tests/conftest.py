@@ -35,6 +35,13 @@ hypothesis.settings.register_profile(
     suppress_health_check=[hypothesis.HealthCheck.too_slow, hypothesis.HealthCheck.data_too_large],
 )
 hypothesis.settings.register_profile(
+    "quick",  # a local check while editing: JAXRT_HYPOTHESIS_PROFILE=quick
+    derandomize=True,
+    deadline=None,
+    max_examples=3,
+    suppress_health_check=[hypothesis.HealthCheck.too_slow, hypothesis.HealthCheck.data_too_large],
+)
+hypothesis.settings.register_profile(
     "thorough",
     derandomize=True,
     deadline=None,
