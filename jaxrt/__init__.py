@@ -16,7 +16,7 @@ from jaxrt._src import versions as _versions  # noqa: F401
 from jaxrt import debug, intersection_functions, io, shading, tags
 from jaxrt._src.bvh.sah import sah_cost
 from jaxrt._src.candidate import BoundingBoxCandidate, TriangleCandidate
-from jaxrt._src.checks import BuildCheckError
+from jaxrt._src.checks import BuildCheckError, build_check_errors
 from jaxrt._src.compaction import compact
 from jaxrt._src.curves import CurveBasis, CurveEndCaps, CurveGeometry, CurveType, MotionCurveGeometry
 from jaxrt._src.geometry import BoundingBoxGeometry, MotionBoundingBoxGeometry, MotionTriangleGeometry, TriangleGeometry
@@ -68,6 +68,7 @@ __all__ = [
     "StructureSizes",
     "TriangleCandidate",
     "TriangleGeometry",
+    "build_check_errors",
     "build_instance_structure",
     "build_primitive_structure",
     "closest_point",
