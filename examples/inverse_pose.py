@@ -1,5 +1,8 @@
 """Pose estimation: fit the rigid transform of a known object to a depth image (optax, Adam).
 
+Needs the ``diff`` extra (optax, matplotlib) beyond the README's ``.[demo]`` environment:
+``pip install -e ".[diff]"``.
+
 The object (the Stanford bunny from ``../shared/data``, or a procedural blob when the data or trimesh is
 absent) is seen by a pinhole camera at an unknown pose. Starting from the identity, Adam fits a rotation
 vector and a translation so that the rendered depth matches the target depth. Each step applies the
