@@ -10,8 +10,8 @@ transform to the vertices, rebuilds the acceleration structure and traces; the g
 through the hit distances. Only pixels hit in both images contribute: moving silhouettes are not
 differentiated (docs/differentiable.md), so the initial pose must overlap the target.
 
-Instance transforms (``rt.Instances``) will be the natural parameter once instancing is available: the
-object's structure would then be built once and only the instance transform differentiated.
+An instance transform (``rt.Instances``) is the other way to pose the object: its structure is then built
+once and only the instance transform is differentiated (docs/instancing.md).
 
 Run: ``python examples/inverse_pose.py [--size 64] [--iterations 200] [--procedural] [--out out/inverse_pose]``
 Writes ``target.png``, ``before.png``, ``after.png`` (depth maps) and ``loss.png`` under ``--out``, and prints

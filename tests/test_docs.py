@@ -228,3 +228,42 @@ def test_data_folder_page_lists_what_the_scripts_read():
         assert f"`{folder}/" in page and stem in page, f"docs/data.md does not list {name}"
     readme = (ROOT / "README.md").read_text()
     assert "JAXRT_DATA_DIR" in readme and "docs/data.md" in readme
+
+
+# --- statements about the code: generated where possible, checked where written ----------------------------------
+
+
+def test_traversal_table_matches_the_code():
+    coverage = load_script("coverage_table")
+    written = coverage.page_table((DOCS / "design.md").read_text())
+    assert written is not None, "docs/design.md lost the traversal coverage markers"
+    assert written == coverage.table(), "docs/design.md is stale: run python scripts/coverage_table.py --write"
+
+
+def _documents() -> dict[str, str]:
+    """The text a user reads: the README, the docs pages and the examples (their docstrings and comments)."""
+    paths = [ROOT / "README.md", *sorted(DOCS.glob("*.md")), *sorted((ROOT / "examples").glob("*.py"))]
+    return {str(p.relative_to(ROOT)): re.sub(r"\s+", " ", p.read_text()) for p in paths}
+
+
+def test_docs_statements_match_the_code():
+    coverage = load_script("coverage_table")
+    cpu_traces_triangles = "| triangles | Numba traversal |" in coverage.table()
+    # (a statement, whether the code makes it false)
+    claims = [
+        (r"once (`?rt\.Instances`?|instancing) (is|are) available", hasattr(jaxrt, "Instances")),
+        (r"(on|including) the CPU[^.]{0,80}portable JAX traversal runs", cpu_traces_triangles),
+        (r"portable JAX traversal runs on any backend, including the CPU", cpu_traces_triangles),
+        (r"CPU runs the portable", cpu_traces_triangles),
+        (r"`load_mesh`: PLY, OBJ, STL, OFF, glTF/GLB, optionally", True),  # DXF is read too
+    ]
+    stale = [
+        f"{name}: {match.group(0)!r}"
+        for name, text in _documents().items()
+        for pattern, false_now in claims
+        if false_now
+        for match in re.finditer(pattern, text)
+    ]
+    assert not stale, "statements the code no longer makes true:\n" + "\n".join(stale)
+    index = (DOCS / "index.md").read_text()
+    assert ("Numba" in index) == cpu_traces_triangles, "docs/index.md should say which traversal the CPU runs"
