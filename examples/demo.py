@@ -159,8 +159,8 @@ def brute_force_float64(origins, directions, triangles):
     o, d, tri = origins.astype(np.float64), directions.astype(np.float64), triangles.astype(np.float64)
     v0, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
     best_t, best_i = np.full(len(o), np.inf), np.full(len(o), -1)
-    for start in range(0, len(o), 64):
-        oo, dd = o[start : start + 64, None], d[start : start + 64, None]
+    for start in range(0, len(o), 16):  # 16 rays at a time: the (rays, triangles) temporaries stay small
+        oo, dd = o[start : start + 16, None], d[start : start + 16, None]
         p = np.cross(dd, e2)
         det = np.einsum("tk,rtk->rt", e1, p)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -171,7 +171,7 @@ def brute_force_float64(origins, directions, triangles):
             t = np.einsum("tk,rtk->rt", e2, q) / det
         ok = (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0) & (det != 0)
         t = np.where(ok, t, np.inf)
-        best_t[start : start + 64], best_i[start : start + 64] = (
+        best_t[start : start + 16], best_i[start : start + 16] = (
             t.min(1),
             np.where(np.isfinite(t.min(1)), t.argmin(1), -1),
         )
