@@ -1,5 +1,8 @@
 """Recover an albedo texture and a light direction from one shaded image (optax, Adam).
 
+Needs the ``diff`` extra (optax, matplotlib) beyond the README's ``.[demo]`` environment:
+``pip install -e ".[diff]"``.
+
 The object (the Stanford bunny from ``../shared/data``, or a procedural blob when the data or trimesh is
 absent) is known and does not move, so its camera rays are traced once: the hit triangles and barycentrics
 then give, through ``rt.shading.interpolate_normals`` and ``rt.shading.interpolate``, smooth shading normals

@@ -1,5 +1,8 @@
 """Move the vertices of a mesh to match a target depth map, with a smoothness prior (optax, Adam).
 
+Needs the ``diff`` extra (optax, matplotlib) beyond the README's ``.[demo]`` environment:
+``pip install -e ".[diff]"``.
+
 A height-field mesh starts flat; the target is the depth map of a bumpy version of it, seen from above by a
 pinhole camera that sees only the inside of the mesh (no silhouettes: see docs/differentiable.md). Each step
 rebuilds the acceleration structure from the current vertices, traces the camera rays and differentiates

@@ -1,5 +1,8 @@
 """Pose estimation: fit the rigid transform of a known object to a depth image (optax, Adam).
 
+Needs the ``diff`` extra (optax, matplotlib) beyond the README's ``.[demo]`` environment:
+``pip install -e ".[diff]"``.
+
 The object (the Stanford bunny from ``../shared/data``, or a procedural blob when the data or trimesh is
 absent) is seen by a pinhole camera at an unknown pose. Starting from the identity, Adam fits a rotation
 vector and a translation so that the rendered depth matches the target depth. Each step applies the
@@ -7,8 +10,8 @@ transform to the vertices, rebuilds the acceleration structure and traces; the g
 through the hit distances. Only pixels hit in both images contribute: moving silhouettes are not
 differentiated (docs/differentiable.md), so the initial pose must overlap the target.
 
-Instance transforms (``rt.Instances``) will be the natural parameter once instancing is available: the
-object's structure would then be built once and only the instance transform differentiated.
+An instance transform (``rt.Instances``) is the other way to pose the object: its structure is then built
+once and only the instance transform is differentiated (docs/instancing.md).
 
 Run: ``python examples/inverse_pose.py [--size 64] [--iterations 200] [--procedural] [--out out/inverse_pose]``
 Writes ``target.png``, ``before.png``, ``after.png`` (depth maps) and ``loss.png`` under ``--out``, and prints

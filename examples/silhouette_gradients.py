@@ -1,5 +1,8 @@
 """What hit gradients miss: finite differences against autodiff for a sphere moving in front of a wall.
 
+Needs the ``diff`` extra (optax, matplotlib) beyond the README's ``.[demo]`` environment:
+``pip install -e ".[diff]"``.
+
 The image (smooth Lambert shading, 96 x 96) is differentiated with respect to the sphere's horizontal
 position ``x``, once by central differences of whole renders and once by ``jax.jvp`` through
 ``rt.build_primitive_structure`` and ``Intersector.intersect``. Autodiff holds each pixel's hit primitive

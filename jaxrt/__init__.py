@@ -16,7 +16,7 @@ from jaxrt._src import versions as _versions  # noqa: F401
 from jaxrt import debug, intersection_functions, io, shading, tags
 from jaxrt._src.bvh.sah import sah_cost
 from jaxrt._src.candidate import BoundingBoxCandidate, TriangleCandidate
-from jaxrt._src.checks import BuildCheckError
+from jaxrt._src.checks import BuildCheckError, build_check_errors
 from jaxrt._src.compaction import compact
 from jaxrt._src.curves import CurveBasis, CurveEndCaps, CurveGeometry, CurveType, MotionCurveGeometry
 from jaxrt._src.geometry import BoundingBoxGeometry, MotionBoundingBoxGeometry, MotionTriangleGeometry, TriangleGeometry
@@ -38,6 +38,7 @@ from jaxrt._src.ray import Ray
 from jaxrt._src.result import IntersectionResult, IntersectionType
 from jaxrt._src.sizes import StructureSizes, structure_sizes
 from jaxrt._src.structures import PrimitiveAccelerationStructure, build_primitive_structure
+from jaxrt._src.topology import boundary_edge_count, is_closed
 from jaxrt._src.winding import contains, signed_distance, winding_number
 
 __version__ = "0.1.0"
@@ -68,6 +69,8 @@ __all__ = [
     "StructureSizes",
     "TriangleCandidate",
     "TriangleGeometry",
+    "boundary_edge_count",
+    "build_check_errors",
     "build_instance_structure",
     "build_primitive_structure",
     "closest_point",
@@ -78,6 +81,7 @@ __all__ = [
     "intersection_functions",
     "intersection_query",
     "io",
+    "is_closed",
     "load",
     "offset_ray_origin",
     "refit",

@@ -136,3 +136,37 @@ def test_checks_under_vmap(blas):
     with raises_check(r"instances\.transform\[0\] = .*inf.* is not finite"):
         build(transforms)
     build(np.stack([IDENTITY, IDENTITY]))
+
+
+def test_except_build_check_error_around_jitted_code(capfd):
+    bad = _set(QUAD, (2, 1), np.nan)
+    build = jax.jit(build_triangles)
+    with pytest.raises(rt.BuildCheckError) as caught:
+        with rt.build_check_errors():
+            build(bad, QUAD_INDICES)
+    message = str(caught.value)
+    assert (
+        message
+        == "build_primitive_structure: geometries[0] (TriangleGeometry) vertices[2] = [ 1., nan, 0.] is not finite"
+    )
+    assert caught.value.__cause__ is None and caught.value.__suppress_context__
+    assert "io_callback failed" not in capfd.readouterr().err  # one report, not a second traceback on stderr
+
+
+def test_build_check_errors_as_a_decorator_with_a_one_line_transform(blas):
+    @rt.build_check_errors()
+    def checked(transform):
+        return jax.jit(build_instances)(blas, transform, np.zeros(3, np.int32))
+
+    checked(IDENTITY)  # valid input: no error
+    with pytest.raises(
+        rt.BuildCheckError, match=r"^build_instance_structure: instances\.transform\[1\] = \[\["
+    ) as caught:
+        checked(_set(IDENTITY, (1, 0, 3), np.nan))
+    assert "\n" not in str(caught.value) and "nan" in str(caught.value)
+
+
+def test_build_check_errors_lets_other_errors_through():
+    with pytest.raises(ValueError, match="not a check"):
+        with rt.build_check_errors():
+            raise ValueError("not a check")

@@ -120,3 +120,150 @@ def test_plumbing_members_are_left_out():
     is_plumbing = load_script("griffe_jaxrt").is_plumbing
     assert [name for name in ("__repr__", "__new__", "tree_flatten", "tree_unflatten") if not is_plumbing(name)] == []
     assert [name for name in ("__init__", "__call__", "intersect", "_private") if is_plumbing(name)] == []
+
+
+# --- set-up claims: extras, data folder, formats -----------------------------------------------------------------
+
+_MODULE_OF = {"pillow": "PIL"}  # distribution names whose import name differs
+
+
+def _extra_modules() -> tuple[set[str], dict[str, set[str]]]:
+    """The import names of the base dependencies and of each extra in pyproject.toml."""
+    import tomllib
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+
+    def modules(requirements):
+        names = (re.match(r"[A-Za-z0-9_.-]+", r).group(0).lower() for r in requirements)
+        return {_MODULE_OF.get(n, n.replace("-", "_")) for n in names}
+
+    extras = {name: modules(reqs) for name, reqs in project["optional-dependencies"].items()}
+    return modules(project["dependencies"]), extras
+
+
+def _imports(path: Path, module_level_only: bool = False) -> set[str]:
+    """Dotted names a file imports (every import statement, or only those at module level)."""
+    import ast
+
+    tree = ast.parse(path.read_text())
+    nodes = tree.body if module_level_only else ast.walk(tree)
+    names = set()
+    for node in nodes:
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            names.add(node.module)
+    return names
+
+
+def _third_party_imports(example: Path) -> set[str]:
+    """Top-level third-party modules an example imports: its own imports, those of the example helpers it
+    imports, and the module-level imports of the jaxrt modules it reaches."""
+    import sys
+
+    local = {p.stem for p in example.parent.glob("*.py")}
+    seen, found = set(), set()
+    pending = [(example, False)]
+    while pending:
+        path, module_level_only = pending.pop()
+        if path in seen:
+            continue
+        seen.add(path)
+        for name in _imports(path, module_level_only):
+            top = name.split(".")[0]
+            if top in local:
+                pending.append((example.parent / f"{top}.py", False))
+            elif top == "jaxrt":
+                file = ROOT.joinpath(*name.split("."))
+                for candidate in (file.with_suffix(".py"), file / "__init__.py"):
+                    if candidate.is_file():
+                        pending.append((candidate, True))
+            elif top not in sys.stdlib_module_names and top != "__future__":
+                found.add(top)
+    return found
+
+
+def test_examples_run_in_the_readme_environment_or_name_their_extra():
+    base, extras = _extra_modules()
+    demo_extras = re.findall(r'-e "\.\[(\w+)\]"', (ROOT / "scripts" / "demo.sh").read_text())
+    assert demo_extras == ["demo"], "scripts/demo.sh installs the README's environment: the demo extra"
+    readme_environment = base | extras["demo"]
+    sections = (DOCS / "gallery.md").read_text().split("\n## ")
+    needing = []
+    for example in sorted((ROOT / "examples").glob("[!_]*.py")):
+        missing = _third_party_imports(example) - readme_environment
+        if not missing:
+            continue
+        needing.append(example.name)
+        head = "\n".join(example.read_text().splitlines()[:6])
+        named = re.findall(r"\.\[(\w+)\]", head)
+        named = [n for n in named if n != "demo"]
+        assert named, f"{example.name} imports {sorted(missing)} (not in .[demo]) but names no extra in its first lines"
+        assert missing <= set().union(*(extras[n] for n in named)), f"{example.name}: .{named} lacks {sorted(missing)}"
+        section = next(s for s in sections if f"examples/{example.name}" in s)
+        for name in named:
+            assert f'".[{name}]"' in section, f"docs/gallery.md does not say that {example.name} needs .[{name}]"
+    assert "inverse_pose.py" in needing  # optax: the case that failed in the README's environment
+
+
+def test_readme_lists_every_load_mesh_format(tmp_path):
+    pytest.importorskip("trimesh")
+    path = tmp_path / "mesh.unknown"
+    path.write_text("")
+    with pytest.raises(ValueError, match="supported: ") as error:
+        jaxrt.io.load_mesh(path)
+    formats = re.findall(r"\.(\w+)", str(error.value).split("supported: ")[1].split("(")[0])
+    line = next(line for line in (ROOT / "README.md").read_text().splitlines() if "`load_mesh`:" in line)
+    listed = {f.lower() for f in re.findall(r"\b([A-Z]{3,4})\b", line.replace("glTF/GLB", "GLTF GLB"))}
+    assert formats and set(formats) <= listed, f"README's load_mesh list lacks {sorted(set(formats) - listed)}"
+
+
+def test_data_folder_page_lists_what_the_scripts_read():
+    from jaxrt.bench.data import FILES
+
+    page = (DOCS / "data.md").read_text()
+    for name in FILES:
+        folder, file = name.split("/")
+        stem = file.split(".")[0]
+        assert f"`{folder}/" in page and stem in page, f"docs/data.md does not list {name}"
+    readme = (ROOT / "README.md").read_text()
+    assert "JAXRT_DATA_DIR" in readme and "docs/data.md" in readme
+
+
+# --- statements about the code: generated where possible, checked where written ----------------------------------
+
+
+def test_traversal_table_matches_the_code():
+    coverage = load_script("coverage_table")
+    written = coverage.page_table((DOCS / "design.md").read_text())
+    assert written is not None, "docs/design.md lost the traversal coverage markers"
+    assert written == coverage.table(), "docs/design.md is stale: run python scripts/coverage_table.py --write"
+
+
+def _documents() -> dict[str, str]:
+    """The text a user reads: the README, the docs pages and the examples (their docstrings and comments)."""
+    paths = [ROOT / "README.md", *sorted(DOCS.glob("*.md")), *sorted((ROOT / "examples").glob("*.py"))]
+    return {str(p.relative_to(ROOT)): re.sub(r"\s+", " ", p.read_text()) for p in paths}
+
+
+def test_docs_statements_match_the_code():
+    coverage = load_script("coverage_table")
+    cpu_traces_triangles = "| triangles | Numba traversal |" in coverage.table()
+    # (a statement, whether the code makes it false)
+    claims = [
+        (r"once (`?rt\.Instances`?|instancing) (is|are) available", hasattr(jaxrt, "Instances")),
+        (r"(on|including) the CPU[^.]{0,80}portable JAX traversal runs", cpu_traces_triangles),
+        (r"portable JAX traversal runs on any backend, including the CPU", cpu_traces_triangles),
+        (r"CPU runs the portable", cpu_traces_triangles),
+        (r"`load_mesh`: PLY, OBJ, STL, OFF, glTF/GLB, optionally", True),  # DXF is read too
+    ]
+    stale = [
+        f"{name}: {match.group(0)!r}"
+        for name, text in _documents().items()
+        for pattern, false_now in claims
+        if false_now
+        for match in re.finditer(pattern, text)
+    ]
+    assert not stale, "statements the code no longer makes true:\n" + "\n".join(stale)
+    index = (DOCS / "index.md").read_text()
+    assert ("Numba" in index) == cpu_traces_triangles, "docs/index.md should say which traversal the CPU runs"

@@ -93,3 +93,30 @@ def test_gpu_instancing_in_a_glb_raises(tmp_path):
     path.write_bytes(header + struct.pack("<II", len(chunk), 0x4E4F534A) + chunk)
     with pytest.raises(ValueError, match=r"instanced\.glb.*EXT_mesh_gpu_instancing.*load_gltf"):
         rt.io.load_mesh(path)
+
+
+def _load_error(path) -> str:
+    with pytest.raises(ValueError) as error:
+        rt.load(path)
+    return str(error.value)
+
+
+def test_load_of_a_text_file_gives_no_advice_to_unpickle(tmp_path):
+    path = tmp_path / "notes.npz"
+    path.write_text("hello\n")
+    message = _load_error(path)
+    assert message == (
+        f"load: {path} is not a readable .npz archive: it starts with b'hello\\n', not with a zip archive's b'PK' "
+        "(jaxrt structure files are written by rt.save)"
+    )
+    assert "allow_pickle" not in message and "unsafe" not in message
+
+
+def test_load_of_pickled_data_refuses_without_advice_to_unpickle(tmp_path):
+    objects = np.array([{"a": 1}], dtype=object)
+    np.save(tmp_path / "objects.npy", objects, allow_pickle=True)
+    np.savez(tmp_path / "objects.npz", header=objects)
+    for name in ("objects.npy", "objects.npz"):
+        message = _load_error(tmp_path / name)
+        assert "pickled (object) data, which no jaxrt structure file holds" in message, message
+        assert "allow_pickle" not in message and "pickle.load" not in message

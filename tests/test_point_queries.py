@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import warnings
 from pathlib import Path
 
 import hypothesis.strategies as st
@@ -367,3 +368,47 @@ def test_points_bench_quick_row():
     assert row["wrong_primitive"] == 0 and row["sign_disagree_fast"] == 0 and row["sign_disagree_exact"] == 0
     assert row["max_distance_error_rel"] < 1e-6
     assert row["closest_point"]["mpoints_s"] > 0 and row["signed_distance"]["mpoints_s"] > 0
+
+
+# --- open surfaces -------------------------------------------------------------------------------------------
+
+
+QUAD = np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], np.float32)
+QUAD_FACES = np.array([[0, 1, 2], [0, 2, 3]], np.int32)
+
+
+def test_is_closed_counts_boundary_edges(sphere):
+    scene, structure, _ = sphere
+    closed = rt.TriangleGeometry(scene.vertices, scene.indices)
+    assert rt.is_closed(closed) and rt.is_closed(structure) and rt.boundary_edge_count(structure) == 0
+    quad = rt.TriangleGeometry(QUAD, QUAD_FACES)
+    assert not rt.is_closed(quad) and rt.boundary_edge_count(quad) == 4
+    assert rt.boundary_edge_count(rt.build_primitive_structure(quad)) == 4  # welded by position, as by index
+    holed = rt.TriangleGeometry(scene.vertices, scene.indices[1:])
+    assert rt.boundary_edge_count(holed) == 3
+    flipped = scene.indices.copy()
+    flipped[0] = flipped[0, ::-1]  # one triangle wound against its neighbours: its 3 edges in both directions
+    assert rt.boundary_edge_count(rt.TriangleGeometry(scene.vertices, flipped)) == 6
+    assert rt.is_closed(rt.BoundingBoxGeometry([[0.0, 0, 0]], [[1.0, 1, 1]]))
+    with pytest.raises(TypeError, match="is_closed: expected a TriangleGeometry"):
+        rt.is_closed(QUAD)
+
+
+def test_open_surface_signed_distance_is_positive_on_both_sides_and_warns_once():
+    structure = rt.build_primitive_structure(rt.TriangleGeometry(QUAD, QUAD_FACES))
+    probe = np.array([[0.5, 0.5, 0.1], [0.5, 0.5, -0.1]], np.float32)
+    with pytest.warns(UserWarning, match=r"signed_distance: .* open surface \(4 boundary edges, rt\.is_closed"):
+        distance = np.asarray(rt.signed_distance(probe, structure))
+    np.testing.assert_allclose(distance, [0.1, 0.1], rtol=1e-6)  # the documented behaviour: no inside
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # once per structure
+        rt.signed_distance(probe, structure)
+    with pytest.warns(UserWarning, match="contains: .* open surface"):
+        assert not np.asarray(rt.contains(probe, structure)).any()
+
+
+def test_closed_surface_does_not_warn(sphere):
+    _, structure, points = sphere
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rt.contains(points[:8], structure)

@@ -36,7 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrt._src.geometry import _as_float_array, _check_finite, _check_primitive_data, _is_concrete
+from jaxrt._src.geometry import _as_float_array, _check_finite, _check_primitive_data, _gather_rows, _is_concrete
 
 __all__ = [
     "MotionCurveGeometry",
@@ -324,7 +324,15 @@ class CurveGeometry:
         """``(S, n, 4)`` control points of each segment in its own basis, radius in the last column."""
         window = self.indices[:, None] + jnp.arange(self.control_point_count, dtype=jnp.int32)
         points = jnp.concatenate([self.control_points, self.radii[:, None]], axis=-1)
-        return points[window]
+        # A segment running past the control points (traced indices only) gets zero rows, not clamped ones;
+        # ``curve_leaves`` gives it an empty box (``segments_in_range``).
+        return _gather_rows(points, window)
+
+    def segments_in_range(self) -> jax.Array:
+        """``(S,)`` whether each segment's control points all exist (the constructor checks concrete indices;
+        traced ones may run past the end, and such segments are never hit)."""
+        last = self.indices + (self.control_point_count - 1)
+        return (self.indices >= 0) & (last < self.control_points.shape[0])
 
     def tree_flatten(self):
         children = (self.control_points, self.radii, self.indices, self.primitive_data)
@@ -538,22 +546,28 @@ def curve_leaves(geometries: tuple[Any, ...], capacity: int) -> CurveLeafArrays 
     if not any(isinstance(g, CurveGeometry) for g in geometries):
         return None
     dtype = next(g.control_points.dtype for g in geometries if isinstance(g, CurveGeometry))
-    segments, flags = [], []
+    segments, flags, in_range = [], [], []
     for g in geometries:
         if isinstance(g, CurveGeometry):
             packed, packed_flags = pack_segments(g)
             segments.append(packed.astype(dtype))
             flags.append(packed_flags | primitive.IS_CURVE)
+            in_range.append(g.segments_in_range())
         else:
             segments.append(jnp.zeros((g.primitive_count, 6, 4), dtype))
             flags.append(jnp.zeros((g.primitive_count,), jnp.int32))
+            in_range.append(jnp.ones((g.primitive_count,), bool))
     segments = jnp.concatenate(segments)
     flags = jnp.concatenate(flags)
     pad = capacity - segments.shape[0]
     segments = jnp.pad(segments, ((0, pad), (0, 0), (0, 0)))
     flags = jnp.pad(flags, (0, pad))
+    in_range = jnp.pad(jnp.concatenate(in_range), (0, pad), constant_values=True)
     is_curve = (flags & primitive.IS_CURVE) != 0
     lower, upper = primitive.segment_bounds(segments)
+    # segments with indices out of range: an empty box, so no ray enters them
+    lower = jnp.where(in_range[:, None], lower, jnp.inf)
+    upper = jnp.where(in_range[:, None], upper, -jnp.inf)
     return CurveLeafArrays(segments, flags, lower, upper, is_curve)
 
 

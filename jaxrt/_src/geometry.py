@@ -65,6 +65,15 @@ def _check_primitive_data(data: Any, count: int, owner: str) -> None:
             )
 
 
+def _gather_rows(values: jax.Array, indices: jax.Array) -> jax.Array:
+    """``values[indices]`` for ``(T, n)`` indices, with every row of a primitive that has an index outside
+    ``[0, len(values))`` set to zero (a gather alone clamps or wraps such an index to a real row)."""
+    count = values.shape[0]
+    in_range = jnp.all((indices >= 0) & (indices < count), axis=-1)
+    rows = values[jnp.where(in_range[:, None], indices, 0)]
+    return jnp.where(in_range.reshape(in_range.shape + (1,) * (rows.ndim - 1)), rows, jnp.zeros((), rows.dtype))
+
+
 @jax.tree_util.register_pytree_node_class
 class TriangleGeometry:
     """Triangles from a vertex buffer and an optional index buffer (Metal's triangle geometry descriptor).
@@ -138,8 +147,14 @@ class TriangleGeometry:
         return int(self.indices.shape[0])
 
     def triangle_vertices(self) -> jax.Array:
-        """``(T, 3, 3)`` vertex positions per triangle (differentiable gather)."""
-        return self.vertices[self.indices]
+        """``(T, 3, 3)`` vertex positions per triangle (differentiable gather).
+
+        A triangle with an index out of range (possible only for traced indices, which the constructor cannot
+        check) gets three vertices at the origin: it has no area, so the build gives it an empty box and no ray
+        hits it. (A plain gather would clamp or wrap the index to some other vertex and make a triangle that
+        rays hit.)
+        """
+        return _gather_rows(self.vertices, self.indices)
 
     def tree_flatten(self):
         return (self.vertices, self.indices, self.primitive_data), (self.opaque,)

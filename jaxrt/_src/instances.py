@@ -639,7 +639,7 @@ def build_instance_structure(
       checks: also check traced inputs (non-finite or singular transforms and structure indices out of range
         among the ``count`` existing instances), which are checked only when concrete otherwise: a
         :class:`~jaxrt._src.checks.BuildCheckError` (inside ``jit``, a ``jax.errors.JaxRuntimeError``
-        carrying its message). Costs a host synchronisation per build (:mod:`jaxrt._src.checks`).
+        carrying its message; :func:`~jaxrt.build_check_errors` raises it as the former). Costs a host synchronisation per build (:mod:`jaxrt._src.checks`).
 
     Returns:
       An :class:`InstanceAccelerationStructure`. Transforms keep their gradient connection (boxes do not), so

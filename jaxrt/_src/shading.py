@@ -155,7 +155,7 @@ def _triangle_corners(
 
     ``per_vertex`` and ``indices`` are one geometry's arrays, or sequences of them indexed by ``geometry_id``
     (the geometries in the order the structure was built from). Lanes whose ``geometry_id`` or ``primitive_id``
-    names no given triangle count as misses.
+    names no given triangle, or a triangle with an index out of range, count as misses.
     """
     primitive_id = jnp.asarray(primitive_id)
     if _is_sequence(per_vertex) != _is_sequence(indices):
@@ -178,13 +178,14 @@ def _triangle_corners(
                 "each hit reads its own geometry's triangle"
             )
         geometry_id = jnp.zeros_like(primitive_id)
-    geometry_id = jnp.broadcast_to(jnp.asarray(geometry_id, jnp.int32), primitive_id.shape)
-    if _concrete(geometry_id) and geometry_id.size and int(jnp.max(geometry_id)) >= geometries:
+    host = np.asarray(geometry_id) if _concrete(geometry_id) else None  # numpy, so that jit traces no max
+    if host is not None and host.size and int(host.max()) >= geometries:
         raise ValueError(
-            f"{name}: geometry_id holds {int(jnp.max(geometry_id))} but only {geometries} geometr"
+            f"{name}: geometry_id holds {int(host.max())} but only {geometries} geometr"
             f"{'y was' if geometries == 1 else 'ies were'} given; pass sequences of every geometry's arrays "
             "(in the order the structure was built from)"
         )
+    geometry_id = jnp.broadcast_to(jnp.asarray(geometry_id, jnp.int32), primitive_id.shape)
     per_vertex = [jnp.asarray(a) for a in per_vertex]
     indices = [jnp.asarray(i, jnp.int32) for i in indices]
     counts = np.array([i.shape[0] for i in indices])
@@ -196,7 +197,13 @@ def _triangle_corners(
     hit = (primitive_id >= 0) & (geometry_id >= 0) & (geometry_id < geometries)
     hit &= primitive_id < jnp.asarray(counts, jnp.int32)[g]
     triangle = jnp.where(hit, jnp.asarray(first_triangle)[g] + primitive_id, 0)
-    return all_values[all_indices[triangle]], hit
+    # A corner index outside its own geometry's vertices (traced indices) would read another geometry's or a
+    # clamped vertex: such a triangle counts as a miss.
+    vertex_count = jnp.asarray([a.shape[0] for a in per_vertex], jnp.int32)
+    local = jnp.concatenate(indices)[triangle]
+    hit &= jnp.all((local >= 0) & (local < vertex_count[g][..., None]), axis=-1)
+    corner = jnp.where(hit[..., None], all_indices[triangle], 0)
+    return all_values[corner], hit
 
 
 def triangle_normals(
@@ -215,7 +222,8 @@ def triangle_normals(
         does not say which geometry's triangle it is).
 
     Returns:
-      ``(..., 3)`` unit normals (0 for misses, zero-area triangles, and ids naming no given triangle).
+      ``(..., 3)`` unit normals (0 for misses, zero-area triangles, ids naming no given triangle and
+      triangles with an index out of range).
 
     Raises:
       ValueError: several geometries without ``geometry_id``, or (outside ``jit``) a ``geometry_id`` past the
@@ -255,8 +263,12 @@ def vertex_normals(vertices: jax.Array, indices: jax.Array) -> jax.Array:
     """
     vertices = jnp.asarray(vertices)
     indices = jnp.asarray(indices)
+    # triangles with an index out of range (traced indices) add nothing, rather than a clamped or wrapped face
+    in_range = jnp.all((indices >= 0) & (indices < vertices.shape[0]), axis=-1)
+    indices = jnp.where(in_range[:, None], indices, 0)
     tri = vertices[indices]
     face = jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = twice the area
+    face = jnp.where(in_range[:, None], face, 0.0)
     summed = jnp.zeros_like(vertices).at[indices.reshape(-1)].add(jnp.repeat(face, 3, axis=0))
     return _normalize(summed)
 
@@ -279,7 +291,8 @@ def interpolate(
       geometry_id: ``(...)`` the hits' ``geometry_id``; needed with several geometries.
 
     Returns:
-      ``(...)`` or ``(..., C)`` interpolated values, 0 for misses (and ids naming no given triangle).
+      ``(...)`` or ``(..., C)`` interpolated values, 0 for misses (and ids naming no given triangle or a
+      triangle with an index out of range).
       Differentiable with respect to ``attribute`` and ``barycentrics`` (and so, through the intersector, to
       vertices and rays).
 

@@ -32,6 +32,7 @@ from jaxrt._src.point_query import _box_table, check_points, check_structure, cl
 from jaxrt._src.point_traversal import lanes_for_backend, walk_points
 from jaxrt._src.primitives import point_triangle as geo
 from jaxrt._src.structures import PrimitiveAccelerationStructure
+from jaxrt._src.topology import warn_if_open
 
 __all__ = ["winding_number", "signed_distance", "contains", "range_sums"]
 
@@ -224,6 +225,9 @@ def contains(
     """Whether each point is inside the structure's surface: winding number ``>= 1/2`` (robust to small
     holes and self-intersections; see :func:`winding_number` for the arguments).
 
+    Meaningful for closed surfaces (:func:`~jaxrt.is_closed`): both sides of an open one (a quad, a terrain)
+    read as outside. Warns once per open structure (outside ``jit``).
+
     Examples:
       >>> import jaxrt as rt
       >>> vertices = [[1., 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]]
@@ -232,6 +236,7 @@ def contains(
       >>> rt.contains([[0., 0, 0], [3., 0, 0]], s).tolist()
       [True, False]
     """
+    warn_if_open(check_structure(structure, "contains"), "contains")
     return _winding(points, structure, exact, beta, "contains") >= 0.5
 
 
@@ -241,7 +246,9 @@ def signed_distance(
     """The distance from each point to the structure's nearest primitive (:func:`~jaxrt.closest_point`),
     negative inside (winding number ``>= 1/2``, :func:`winding_number`).
 
-    Differentiable with respect to the points and the vertices (the sign is held fixed).
+    Differentiable with respect to the points and the vertices (the sign is held fixed). The sign needs a
+    closed surface (:func:`~jaxrt.is_closed`): near an open one (a quad) it is positive on both sides. Warns
+    once per open structure (outside ``jit``).
 
     Examples:
       >>> import jaxrt as rt
@@ -251,6 +258,7 @@ def signed_distance(
       >>> [round(float(d), 3) for d in rt.signed_distance([[0., 0, 0], [3., 0, 0]], s)]
       [-0.577, 2.0]
     """
+    warn_if_open(check_structure(structure, "signed_distance"), "signed_distance")
     inside = _winding(points, structure, exact, beta, "signed_distance") >= 0.5
     distance = closest_point(points, structure).distance
     return jnp.where(inside, -distance, distance)

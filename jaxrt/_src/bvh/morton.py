@@ -28,12 +28,15 @@ def morton_codes(lower: jax.Array, upper: jax.Array, valid: jax.Array) -> jax.Ar
 
     Args:
       lower, upper: ``(N, 3)`` primitive boxes.
-      valid: ``(N,)`` bool; invalid (padding) slots get :data:`PADDING_CODE`.
+      valid: ``(N,)`` bool; invalid (padding) slots get :data:`PADDING_CODE`, and so do slots whose
+        centroid is not finite (an empty box, or a NaN coordinate inside ``jit``), which would otherwise make
+        the scene bounds, and so every code, NaN.
 
     Returns:
       ``(N,)`` uint32 codes.
     """
     centroid = 0.5 * (lower + upper)
+    valid = valid & jnp.all(jnp.isfinite(centroid), axis=-1)
     centroid = jnp.where(valid[:, None], centroid, 0.0)
     big = jnp.finfo(centroid.dtype).max
     scene_lo = jnp.min(jnp.where(valid[:, None], centroid, big), axis=0)

@@ -227,19 +227,34 @@ def save(
 # --- loading ----------------------------------------------------------------------------------------------------
 
 
+#: The first bytes of a zip archive (local file header, or the end record of an empty archive) and of a .npy file.
+_ARCHIVE_MAGIC = (b"PK\x03\x04", b"PK\x05\x06", b"\x93NUMPY")
+
+
+def _reason(error: Exception) -> str:
+    """NumPy's error, without its advice to load pickled data unsafely: a jaxrt file never holds pickles."""
+    text = str(error)
+    if "allow_pickle" in text or "pickle" in text.lower():
+        return "it holds pickled (object) data, which no jaxrt structure file holds; it was not loaded"
+    return f"{type(error).__name__}: {text}"
+
+
 class _Reader:
     """Reads and checks the entries of one file; every failure is a ``ValueError`` naming the file."""
 
     def __init__(self, path: str):
         self.path = path
+        with open(path, "rb") as file:
+            raw = file.read()
+        if not raw.startswith(_ARCHIVE_MAGIC):
+            raise self.error(
+                f"is not a readable .npz archive: it starts with {raw[:16]!r}, not with a zip archive's b'PK' "
+                "(jaxrt structure files are written by rt.save)"
+            )
         try:
-            with open(path, "rb") as file:
-                raw = file.read()
             self.archive = np.load(io.BytesIO(raw), allow_pickle=False)
-        except FileNotFoundError:
-            raise
         except Exception as error:  # noqa: BLE001 - numpy and zipfile raise many types for damaged files
-            raise self.error(f"is not a readable .npz archive ({type(error).__name__}: {error})") from None
+            raise self.error(f"is not a readable .npz archive ({_reason(error)})") from None
         if not isinstance(self.archive, np.lib.npyio.NpzFile):
             raise self.error("is a bare .npy array, not a jaxrt structure archive")
         self.files = set(self.archive.files)
@@ -253,7 +268,7 @@ class _Reader:
         except KeyError:
             raise self.error(f"has no array {name!r} (missing entry)") from None
         except Exception as error:  # noqa: BLE001 - CRC errors, truncated entries, object arrays
-            raise self.error(f"has a damaged array {name!r} ({type(error).__name__}: {error})") from None
+            raise self.error(f"has a damaged array {name!r} ({_reason(error)})") from None
 
     def header(self) -> dict:
         if _HEADER not in self.files:
