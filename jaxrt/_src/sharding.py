@@ -179,9 +179,7 @@ def intersect_sharded(intersector: Any, rays: Ray, structure: Any, *, mesh: Mesh
     if _is_traced((rays, structure)):
         spread = jax.tree_util.tree_map(lambda a: _spread(jnp, a, n, devices, per, rows), flat)
         spread = jax.lax.with_sharding_constraint(spread, NamedSharding(mesh, spec))
-        mapped = jax.shard_map(
-            intersector.intersect, mesh=mesh, in_specs=(spec, P()), out_specs=spec, check_vma=False
-        )
+        mapped = jax.shard_map(intersector.intersect, mesh=mesh, in_specs=(spec, P()), out_specs=spec, check_vma=False)
         return jax.tree_util.tree_map(lambda a: _gather(a, n, devices, per, rows, shape), mapped(spread, structure))
     sharding = NamedSharding(mesh, spec)
     exact = per == rows and devices * per == n  # nothing to pad: the rows are the batch as it is
