@@ -2,7 +2,10 @@
 
 The sharded test runs in a subprocess with ``XLA_FLAGS=--xla_force_host_platform_device_count=4`` (the flag
 must be set before JAX starts), tracing rays split over four CPU devices with ``jax.shard_map`` around
-``Intersector.intersect``, the structure replicated: the way docs/performance.md gives for several GPUs.
+``Intersector.intersect``, the structure replicated: by hand, as docs/performance.md gives, and through
+``rt.intersect_sharded`` for ray counts that do not divide by the devices (eagerly and inside ``jit``). The
+worlds of tests/test_worlds.py are then updated split over the four devices (six worlds: two padding worlds
+are added and cut) and compared with an update on one device. tests/test_multihost.py runs two processes.
 """
 
 from __future__ import annotations
@@ -76,6 +79,40 @@ _SHARDED = textwrap.dedent(
     assert len({s.device for s in out.distance.addressable_shards}) == 4
     assert int((reference.primitive_id >= 0).sum()) > 100
     _assert_same(out, reference)
+
+    # Any ray count, any batch shape: padded in equal rows (250.25 rays per device here), cut again.
+    structure, rays = _scene_and_rays(1001, seed=1)
+    reference = intersector.intersect(rays, structure)
+    out = rt.intersect_sharded(intersector, rays, structure)
+    assert out.distance.shape == (1001,)
+    assert len({s.device for s in out.distance.addressable_shards}) == 4
+    _assert_same(out, reference)
+    grid = jax.tree.map(lambda a: a[:91], rays).reshape(7, 13)  # 23 rays per device, padded to 32
+    inside = jax.jit(lambda r, s: rt.intersect_sharded(intersector, r, s, mesh=mesh))(grid, structure)
+    assert inside.triangle_barycentric_coord.shape == (7, 13, 2)
+    _assert_same(inside, jax.tree.map(lambda a: a[:91].reshape(7, 13, *a.shape[1:]), reference))
+    two = rt.intersect_sharded(intersector, jax.tree.map(lambda a: a[:3], rays), structure, mesh=rt.device_mesh(2))  # fewer rays than rows
+    _assert_same(two, jax.tree.map(lambda a: a[:3], reference))
+
+    # Worlds split over the devices: a partial update equals the full one on one device where selected and
+    # leaves the other worlds as they were.
+    import jax.numpy as jnp
+    from test_worlds import SELECTED, WORLDS, _FUNCTIONS, _assert_bitwise, _assert_same as same_world, _world
+    from jaxrt.bench import worlds as bench
+
+    fn = _FUNCTIONS["rebuild"]
+    params = bench.world_params(WORLDS, seed=3)
+    t = jnp.linspace(0.4, 1.4, WORLDS, dtype=jnp.float32)
+    shapes = jax.eval_shape(jax.vmap(fn), params, t, None)
+    blank = jax.tree.map(lambda a: jnp.full(a.shape, 7, a.dtype), shapes)
+    full = rt.update_worlds(fn, jnp.ones(WORLDS, bool), blank, params, t, blank[0], capacity=WORLDS)
+    spread = rt.update_worlds(fn, jnp.asarray(SELECTED), blank, params, t, blank[0], mesh=rt.device_mesh(4, "worlds"))
+    assert len({s.device for s in spread[1].distance.addressable_shards}) == 4
+    for i in range(WORLDS):
+        if SELECTED[i]:
+            same_world(_world(spread, i), _world(full, i), f"world {i}")
+        else:
+            _assert_bitwise(_world(spread, i), _world(blank, i), f"world {i} changed")
     print("sharded ok")
     """
 )

@@ -110,8 +110,12 @@ def _spread(xp: Any, a: Any, n: int, devices: int, per: int, rows: int) -> Any:
     return a.reshape(devices * rows, *a.shape[2:])
 
 
-def _gather(a: Any, n: int, devices: int, per: int, rows: int, shape: tuple[int, ...]) -> Any:
-    """The inverse of :func:`_spread`, reshaped to the batch ``shape`` (trailing axes kept)."""
+def _gather(a: Any, n: int, devices: int, per: int, rows: int, shape: tuple[int, ...], mesh: Mesh) -> Any:
+    """The inverse of :func:`_spread`, reshaped to the batch ``shape`` (trailing axes kept). On a mesh with
+    explicit axes (``jax.make_mesh``'s default) the rows are first gathered on every device: slicing a
+    sharded axis to a length the devices do not divide is not defined there."""
+    if _explicit(mesh) and (per != rows or devices * per != n):
+        a = jax.sharding.reshard(a, NamedSharding(mesh, P()))
     a = a.reshape(devices, rows, *a.shape[1:])[:, :per]
     return a.reshape(devices * per, *a.shape[2:])[:n].reshape(*shape, *a.shape[2:])
 
@@ -125,9 +129,22 @@ def _program(intersector: Any, mesh: Mesh) -> Any:
     )
 
 
-@functools.partial(jax.jit, static_argnums=(1, 2, 3, 4, 5))
-def _trim(result: Any, n: int, devices: int, per: int, rows: int, shape: tuple[int, ...]) -> Any:
-    return jax.tree_util.tree_map(lambda a: _gather(a, n, devices, per, rows, shape), result)
+@functools.partial(jax.jit, static_argnums=(1, 2, 3, 4, 5, 6))
+def _trim(result: Any, n: int, devices: int, per: int, rows: int, shape: tuple[int, ...], mesh: Mesh) -> Any:
+    return jax.tree_util.tree_map(lambda a: _gather(a, n, devices, per, rows, shape, mesh), result)
+
+
+def _explicit(mesh: Mesh) -> bool:
+    return any(t == jax.sharding.AxisType.Explicit for t in mesh.axis_types)
+
+
+def _constrain(tree: Any, sharding: NamedSharding) -> Any:
+    """``tree`` laid out by ``sharding`` inside a trace (``reshard`` where the mesh's axes are explicit)."""
+    return (
+        jax.sharding.reshard(tree, sharding)
+        if _explicit(sharding.mesh)
+        else jax.lax.with_sharding_constraint(tree, sharding)
+    )
 
 
 def _is_traced(tree: Any) -> bool:
@@ -178,9 +195,11 @@ def intersect_sharded(intersector: Any, rays: Ray, structure: Any, *, mesh: Mesh
     spec = P(mesh.axis_names)
     if _is_traced((rays, structure)):
         spread = jax.tree_util.tree_map(lambda a: _spread(jnp, a, n, devices, per, rows), flat)
-        spread = jax.lax.with_sharding_constraint(spread, NamedSharding(mesh, spec))
+        spread = _constrain(spread, NamedSharding(mesh, spec))
         mapped = jax.shard_map(intersector.intersect, mesh=mesh, in_specs=(spec, P()), out_specs=spec, check_vma=False)
-        return jax.tree_util.tree_map(lambda a: _gather(a, n, devices, per, rows, shape), mapped(spread, structure))
+        return jax.tree_util.tree_map(
+            lambda a: _gather(a, n, devices, per, rows, shape, mesh), mapped(spread, structure)
+        )
     sharding = NamedSharding(mesh, spec)
     exact = per == rows and devices * per == n  # nothing to pad: the rows are the batch as it is
     if sharding.is_fully_addressable:
@@ -194,4 +213,4 @@ def intersect_sharded(intersector: Any, rays: Ray, structure: Any, *, mesh: Mesh
     out = _program(intersector, mesh)(spread, replicate(structure, mesh))
     if exact and len(shape) == 1:
         return out
-    return _trim(out, n, devices, per, rows, tuple(shape))
+    return _trim(out, n, devices, per, rows, tuple(shape), mesh)

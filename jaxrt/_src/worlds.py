@@ -23,11 +23,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from jax.sharding import Mesh
+from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from jaxrt._src import pipeline
-from jaxrt._src.sharding import _check_mesh, _is_traced
+from jaxrt._src.sharding import _check_mesh, _explicit, _is_traced
 
 __all__ = ["update_worlds", "worlds_capacity"]
 
@@ -120,11 +120,17 @@ def _update(fn: Callable, capacity: int, mesh: Mesh | None, mask: jax.Array, pre
         mask = jnp.concatenate([mask, jnp.zeros(total - n, bool)])
         previous, args = _pad_worlds(previous, n, total), _pad_worlds(args, n, total)
     spec = P(mesh.axis_names)
+    if _explicit(mesh):  # explicit axes (jax.make_mesh's default): the worlds laid out over them first
+        mask, previous, args = jax.sharding.reshard((mask, previous, args), NamedSharding(mesh, spec))
     mapped = jax.shard_map(
         functools.partial(_local, fn, capacity), mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False
     )
     out = mapped(mask, previous, args)
-    return out if total == n else jax.tree_util.tree_map(lambda a: a[:n], out)
+    if total == n:
+        return out
+    if _explicit(mesh):  # a sharded axis cannot be cut to a length the devices do not divide
+        out = jax.sharding.reshard(out, NamedSharding(mesh, P()))
+    return jax.tree_util.tree_map(lambda a: a[:n], out)
 
 
 _update_jit = jax.jit(_update, static_argnums=(0, 1, 2))
