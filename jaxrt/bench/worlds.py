@@ -22,6 +22,7 @@ and 32x32 images, one repeat).
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 import time
@@ -58,7 +59,7 @@ def world_params(worlds: int, seed: int = 0) -> dict[str, jax.Array]:
         "scale": jnp.asarray(rng.uniform(0.5, 1.2, (worlds, OBJECTS)), jnp.float32),
         "phase": jnp.asarray(rng.uniform(0, 2 * np.pi, (worlds, OBJECTS)), jnp.float32),
         "camera_angle": jnp.asarray(rng.uniform(0, 2 * np.pi, worlds), jnp.float32),
-        "camera_height": jnp.asarray(rng.uniform(3, 7, worlds), jnp.float32),
+        "camera_height": jnp.asarray(rng.uniform(2.5, 5, worlds), jnp.float32),
     }
 
 
@@ -84,7 +85,7 @@ def world_geometries(params: dict[str, jax.Array], t: jax.Array) -> list[rt.Tria
 def world_camera(params: dict[str, jax.Array], t: jax.Array, side: int) -> rt.Ray:
     """A ``side x side`` pinhole camera orbiting the world's centre."""
     angle = params["camera_angle"] + 0.1 * t
-    eye = jnp.stack([9 * jnp.cos(angle), params["camera_height"], 9 * jnp.sin(angle)])
+    eye = jnp.stack([7 * jnp.cos(angle), params["camera_height"], 7 * jnp.sin(angle)])
     return rt.shading.pinhole_rays(side, side, eye=eye, target=jnp.array([0.0, 0.5, 0.0]), fov_degrees=60.0)
 
 
@@ -110,14 +111,20 @@ def world_update(side: int, rebuild: bool, intersector: rt.Intersector | None = 
     return update
 
 
+@jax.jit
+@jax.vmap
+def _build_at_start(params: dict[str, jax.Array]) -> rt.PrimitiveAccelerationStructure:
+    return rt.build_primitive_structure(world_geometries(params, jnp.float32(0)))
+
+
 def initial_state(params: dict[str, jax.Array], side: int) -> tuple:
     """Every world built at ``t = 0``, its images empty: ``(structures, depth, segmentation)``."""
     worlds = params["scale"].shape[0]
-    build = jax.jit(jax.vmap(lambda p: rt.build_primitive_structure(world_geometries(p, jnp.float32(0)))))
     depth = jnp.full((worlds, side, side), jnp.inf, jnp.float32)
-    return build(params), depth, jnp.full((worlds, side, side), -1, jnp.int32)
+    return _build_at_start(params), depth, jnp.full((worlds, side, side), -1, jnp.int32)
 
 
+@functools.lru_cache(maxsize=32)
 def make_step(side: int, rebuild: bool, mesh: Any = None) -> Any:
     """The jitted step ``step(state, params, t, mask, capacity) -> state`` (``capacity`` static): every
     world the mask selects is moved to its time ``t`` (an array, one per world), rebuilt or refit and
