@@ -9,7 +9,7 @@ per device, and cuts the padding. Where the count divides by the devices the ray
 timing (``placed``); otherwise they stay on the first device and each call spreads them (``spread per
 call``). On a CPU, ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` gives ``N`` devices.
 
-Flags: ``--triangles``, ``--rays``, ``--devices``, ``--repeats``, ``--json PATH``.
+Flags: ``--triangles``, ``--rays`` (comma-separated counts), ``--devices``, ``--repeats``, ``--json PATH``.
 """
 
 from __future__ import annotations
@@ -33,41 +33,28 @@ from jaxrt.bench.timing import timed
 __all__ = ["main"]
 
 
-def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
-    """Run, print one line per configuration, and write the JSON file if asked; returns the results."""
-    parser = argparse.ArgumentParser(prog="python -m jaxrt.bench.sharded", description=__doc__.splitlines()[0])
-    parser.add_argument("--triangles", type=int, default=1_000_000)
-    parser.add_argument("--rays", type=int, default=1 << 24)
-    parser.add_argument("--devices", type=int, help="devices to split the rays over (default: all)")
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--json", metavar="PATH")
-    args = parser.parse_args(argv)
-    vertices, indices = noisy_sphere(args.triangles)
-    structure = rt.build_primitive_structure(rt.TriangleGeometry(vertices, indices))
-    rays = camera_rays(args.rays).reshape(-1)
+def _run(count: int, structure: Any, intersector: rt.Intersector, mesh: Any, repeats: int) -> dict[str, Any]:
+    """One ray count: one device, then the mesh; the numbers and whether the hits agree."""
+    rays = camera_rays(count).reshape(-1)
     n = int(rays.origin.shape[0])
-    intersector = rt.Intersector(rt.tags.triangle_data)
     single = jax.jit(intersector.intersect)
-    one, reference = timed(lambda: single(rays, structure), args.repeats)
-    mesh = rt.device_mesh(args.devices)
+    one, reference = timed(lambda: single(rays, structure), repeats)
     devices = mesh.size
     replicated = rt.replicate(structure, mesh)
     placed = n % devices == 0
     if placed:
         rays = jax.device_put(rays, NamedSharding(mesh, P(mesh.axis_names)))
-    many, out = timed(lambda: rt.intersect_sharded(intersector, rays, replicated, mesh=mesh), args.repeats)
+    many, out = timed(lambda: rt.intersect_sharded(intersector, rays, replicated, mesh=mesh), repeats)
     same_ids = all(
         np.array_equal(np.asarray(out[name]), np.asarray(reference[name])) for name in ("type", "primitive_id")
     )
     hit = np.asarray(reference.primitive_id) >= 0
     distance_gap = float(np.max(np.abs(np.asarray(out.distance)[hit] - np.asarray(reference.distance)[hit]), initial=0))
     results = {
-        "machine": machine_info(),
         "devices": devices,
         "rays_placed": placed,
         "device_kinds": sorted({d.device_kind for d in jax.devices()}),
         "rays": n,
-        "triangles": int(indices.shape[0]),
         "one_device": one.as_dict(n),
         "all_devices": many.as_dict(n),
         "speedup": one.median_s / many.median_s if many.median_s > 0 else float("inf"),
@@ -75,14 +62,34 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         "max_distance_difference": distance_gap,
         "hits": int(hit.sum()),
     }
-    print(f"{n:,} rays, {int(indices.shape[0]):,} triangles, {devices} device(s) of {results['device_kinds']}")
-    print(f"one device: {results['one_device']['mrays_s']:.1f} Mrays/s (compile {one.compile_s:.1f} s)")
+    print(f"{n:,} rays, {devices} device(s) of {results['device_kinds']}")
+    print(f"  one device: {results['one_device']['mrays_s']:.1f} Mrays/s (compile {one.compile_s:.1f} s)")
     where = "placed on the devices" if placed else "on the first device, spread per call"
     print(
-        f"{devices} devices: {results['all_devices']['mrays_s']:.1f} Mrays/s (compile {many.compile_s:.1f} s; "
+        f"  {devices} devices: {results['all_devices']['mrays_s']:.1f} Mrays/s (compile {many.compile_s:.1f} s; "
         f"rays {where})"
     )
-    print(f"speed-up {results['speedup']:.2f}x; same hits: {same_ids}; max distance difference {distance_gap:.2e}")
+    print(f"  speed-up {results['speedup']:.2f}x; same hits: {same_ids}; max distance difference {distance_gap:.2e}")
+    return results
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    """Run, print the lines of each ray count, and write the JSON file if asked; returns the results (those of
+    the first ray count, and every count's under ``runs``)."""
+    parser = argparse.ArgumentParser(prog="python -m jaxrt.bench.sharded", description=__doc__.splitlines()[0])
+    parser.add_argument("--triangles", type=int, default=1_000_000)
+    parser.add_argument("--rays", default=str(1 << 24), help="ray counts, comma-separated")
+    parser.add_argument("--devices", type=int, help="devices to split the rays over (default: all)")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--json", metavar="PATH")
+    args = parser.parse_args(argv)
+    vertices, indices = noisy_sphere(args.triangles)
+    structure = rt.build_primitive_structure(rt.TriangleGeometry(vertices, indices))
+    print(f"{int(indices.shape[0]):,} triangles (noisy sphere)")
+    intersector = rt.Intersector(rt.tags.triangle_data)
+    mesh = rt.device_mesh(args.devices)
+    runs = [_run(int(c), structure, intersector, mesh, args.repeats) for c in args.rays.split(",")]
+    results = dict(runs[0], machine=machine_info(), triangles=int(indices.shape[0]), runs=runs)
     if args.json:
         with open(args.json, "w") as f:
             json.dump(results, f, indent=1)
