@@ -1,5 +1,6 @@
 """Several processes (``jax.distributed``): two CPU processes on this machine, two devices each, trace rays split
-over the four devices of both with ``rt.intersect_sharded`` and get the hits of one process's plain call.
+over the four devices of both with ``rt.intersect_sharded`` and get the hits of one process's plain call; and
+``rt.update_worlds`` splits worlds over the same four devices.
 
 The processes talk over loopback only (a free port on 127.0.0.1) and are killed after a bounded time.
 """
@@ -37,6 +38,12 @@ _WORKER = textwrap.dedent(
     everything = multihost_utils.process_allgather(out, tiled=True)
     assert int((np.asarray(reference.primitive_id) >= 0).sum()) > 100
     _assert_same(everything, reference)
+
+    # Seven worlds over the four devices of both processes (padded to eight): the selected ones updated.
+    mask = np.array([True, False, True, False, True, True, False])
+    previous, x = np.full(7, -1.0, np.float32), np.arange(7, dtype=np.float32)
+    worlds = rt.update_worlds(lambda v: 2 * v, mask, previous, x, mesh=rt.device_mesh(None, "worlds"))
+    np.testing.assert_array_equal(multihost_utils.process_allgather(worlds, tiled=True), np.where(mask, 2 * x, -1))
     print(f"process {process} ok", flush=True)
     """
 )

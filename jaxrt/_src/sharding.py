@@ -48,8 +48,8 @@ def device_mesh(devices: Any = None, axis_name: str = "rays") -> Mesh:
 
     Examples:
       >>> import jaxrt as rt
-      >>> rt.device_mesh(1).shape
-      OrderedDict([('rays', 1)])
+      >>> dict(rt.device_mesh(1).shape)
+      {'rays': 1}
     """
     everything = jax.devices()
     if devices is None:
