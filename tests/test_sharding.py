@@ -5,7 +5,7 @@ must be set before JAX starts), tracing rays split over four CPU devices with ``
 ``Intersector.intersect``, the structure replicated: by hand, as docs/performance.md gives, and through
 ``rt.intersect_sharded`` for ray counts that do not divide by the devices (eagerly and inside ``jit``). The
 worlds of tests/test_worlds.py are then updated split over the four devices (six worlds: two padding worlds
-are added and cut) and compared with an update on one device. tests/test_multihost.py runs two processes.
+are added and cut) and checked against the float64 oracle. tests/test_multihost.py runs two processes.
 """
 
 from __future__ import annotations
@@ -94,25 +94,22 @@ _SHARDED = textwrap.dedent(
     two = rt.intersect_sharded(intersector, jax.tree.map(lambda a: a[:3], rays), structure, mesh=rt.device_mesh(2))  # fewer rays than rows
     _assert_same(two, jax.tree.map(lambda a: a[:3], reference))
 
-    # Worlds split over the devices: a partial update equals the full one on one device where selected and
-    # leaves the other worlds as they were.
+    # Worlds split over the devices (six worlds: two padding worlds added and cut): the selected ones match the
+    # float64 oracle (tests/test_worlds.py compares partial and full updates on one device), the others are as
+    # they were.
     import jax.numpy as jnp
-    from test_worlds import SELECTED, WORLDS, _FUNCTIONS, _assert_bitwise, _assert_same as same_world, _world
-    from jaxrt.bench import worlds as bench
+    from test_worlds import SELECTED, WORLDS, _FUNCTIONS, _assert_bitwise, _check_against_oracle, _world, inputs
 
     fn = _FUNCTIONS["rebuild"]
-    params = bench.world_params(WORLDS, seed=3)
-    t = jnp.linspace(0.4, 1.4, WORLDS, dtype=jnp.float32)
-    shapes = jax.eval_shape(jax.vmap(fn), params, t, None)
+    step = inputs(np.linspace(0.4, 1.4, WORLDS))
+    shapes = jax.eval_shape(jax.vmap(fn), *step, None)
     blank = jax.tree.map(lambda a: jnp.full(a.shape, 7, a.dtype), shapes)
-    full = rt.update_worlds(fn, jnp.ones(WORLDS, bool), blank, params, t, blank[0], capacity=WORLDS)
-    spread = rt.update_worlds(fn, jnp.asarray(SELECTED), blank, params, t, blank[0], mesh=rt.device_mesh(4, "worlds"))
+    mesh = rt.device_mesh(4, "worlds")
+    spread = rt.update_worlds(fn, jnp.asarray(SELECTED), blank, *step, blank[0], mesh=mesh)
     assert len({s.device for s in spread[1].distance.addressable_shards}) == 4
-    for i in range(WORLDS):
-        if SELECTED[i]:
-            same_world(_world(spread, i), _world(full, i), f"world {i}")
-        else:
-            _assert_bitwise(_world(spread, i), _world(blank, i), f"world {i} changed")
+    _check_against_oracle(step, spread[1], np.flatnonzero(SELECTED))
+    for i in np.flatnonzero(~SELECTED):
+        _assert_bitwise(_world(spread, i), _world(blank, i), f"world {i} changed")
     print("sharded ok")
     """
 )
