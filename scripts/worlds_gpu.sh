@@ -8,6 +8,8 @@
 #                    device and split over four (rt.update_worlds with a mesh)
 #   3. worlds_table  the worlds table on one GPU (CUDA_VISIBLE_DEVICES=0): 128x128 and 64x64; 256, 1,024 and 4,096
 #                    worlds; rebuild and refit; the full step and a 10% step
+#   4. tests_worlds  tests/test_worlds.py on the GPU (partial updates against full ones and the float64 oracle), if
+#                    the budget has time left
 # Every step has a time limit and the whole run a budget (BUDGET seconds, default 350): a step that would pass it is
 # skipped. Each step prints its table (the last lines of its log) and its wall time; logs and JSON go to $OUT.
 # SMOKE=1 runs tiny sizes (a check of the script on a CPU with XLA_FLAGS=--xla_force_host_platform_device_count=4).
@@ -64,4 +66,5 @@ step worlds_devices 90 python3 -m jaxrt.bench.worlds --worlds "$big" --sides "$s
   --repeats 3 --json "$out/worlds_devices.json"
 step worlds_table 150 env CUDA_VISIBLE_DEVICES=0 python3 -m jaxrt.bench.worlds --worlds "$worlds" --sides "$sides" \
   --modes rebuild,refit --repeats 3 --json "$out/worlds_table.json"
+step tests_worlds 60 python3 -m pytest tests/test_worlds.py -q -p no:cacheprovider -x -rs
 echo "done in ${SECONDS} s; logs and JSON in $out"
