@@ -2,8 +2,9 @@
 # Many worlds and many devices, one run on a host of four GPUs (device kind nvidia-h200-x4 or nvidia-h100-x4), from
 # the repository root, with the wheels in .whl/ (jax-triton) as scripts/device_run.sh has them. About 6 minutes:
 #   1. sharded       python -m jaxrt.bench.sharded: 16,777,216 camera rays into the 1M-triangle sphere, one device
-#                    against rt.intersect_sharded over four; then 33,554,432 rays (the camera gives 33,558,849,
-#                    which four devices do not divide)
+#                    against rt.intersect_sharded over four, the rays in image order and with image rows dealt
+#                    to the devices in turn; then 33,554,432 rays (the camera gives 33,558,849, which four devices
+#                    do not divide)
 #   2. worlds_devices python -m jaxrt.bench.worlds: 4,096 worlds, 128x128 and 64x64, rebuilt every step, on one
 #                    device and split over four (rt.update_worlds with a mesh)
 #   3. worlds_table  the worlds table on one GPU (CUDA_VISIBLE_DEVICES=0): 128x128 and 64x64; 256, 1,024 and 4,096

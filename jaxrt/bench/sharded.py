@@ -7,9 +7,12 @@ the speed-up, and whether every result field is equal (hit ids exactly, distance
 runs: the camera gives ``round(sqrt(rays))**2`` rays, and ``intersect_sharded`` pads them in equal rows, one
 per device, and cuts the padding. Where the count divides by the devices the rays are placed on them before
 timing (``placed``); otherwise they stay on the first device and each call spreads them (``spread per
-call``). On a CPU, ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` gives ``N`` devices.
+call``). A camera's rays cost unequally (rows through the object against rows past it), so equal blocks of
+image rows load the devices unequally: ``--layouts`` times the rays in image order and ``interleaved`` (rows
+dealt to the devices in turn, as multi-GPU renderers interleave scanlines), the one device tracing the same
+ordered rays. On a CPU, ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` gives ``N`` devices.
 
-Flags: ``--triangles``, ``--rays`` (comma-separated counts), ``--devices``, ``--repeats``, ``--json PATH``.
+Flags: ``--triangles``, ``--rays`` (comma-separated counts), ``--devices``, ``--layouts``, ``--repeats``, ``--json PATH``.
 """
 
 from __future__ import annotations
@@ -33,11 +36,23 @@ from jaxrt.bench.timing import timed
 __all__ = ["main"]
 
 
-def _run(count: int, structure: Any, intersector: rt.Intersector, mesh: Any, repeats: int) -> dict[str, Any]:
-    """One ray count: one device, then the mesh; the numbers and whether the hits agree."""
-    rays = camera_rays(count).reshape(-1)
+def _rays(count: int, layout: str, devices: int) -> rt.Ray:
+    """The camera's rays, flat: image rows in order (``image``), or rows dealt to the devices in turn
+    (``interleaved``: row ``r`` in the block of device ``r % devices``, so every device traces rows from all
+    over the image)."""
+    rays = camera_rays(count)
+    if layout == "interleaved":
+        order = np.concatenate([np.arange(k, rays.shape[0], devices) for k in range(devices)])
+        rays = jax.tree_util.tree_map(lambda a: a[order], rays)
+    return rays.reshape(-1)
+
+
+def _run(
+    count: int, layout: str, structure: Any, intersector: rt.Intersector, single: Any, mesh: Any, repeats: int
+) -> dict[str, Any]:
+    """One ray count and layout: one device, then the mesh; the numbers and whether the hits agree."""
+    rays = _rays(count, layout, mesh.size)
     n = int(rays.origin.shape[0])
-    single = jax.jit(intersector.intersect)
     one, reference = timed(lambda: single(rays, structure), repeats)
     devices = mesh.size
     replicated = rt.replicate(structure, mesh)
@@ -51,6 +66,7 @@ def _run(count: int, structure: Any, intersector: rt.Intersector, mesh: Any, rep
     hit = np.asarray(reference.primitive_id) >= 0
     distance_gap = float(np.max(np.abs(np.asarray(out.distance)[hit] - np.asarray(reference.distance)[hit]), initial=0))
     results = {
+        "layout": layout,
         "devices": devices,
         "rays_placed": placed,
         "device_kinds": sorted({d.device_kind for d in jax.devices()}),
@@ -62,7 +78,7 @@ def _run(count: int, structure: Any, intersector: rt.Intersector, mesh: Any, rep
         "max_distance_difference": distance_gap,
         "hits": int(hit.sum()),
     }
-    print(f"{n:,} rays, {devices} device(s) of {results['device_kinds']}")
+    print(f"{n:,} rays in {layout} order, {devices} device(s) of {results['device_kinds']}")
     print(f"  one device: {results['one_device']['mrays_s']:.1f} Mrays/s (compile {one.compile_s:.1f} s)")
     where = "placed on the devices" if placed else "on the first device, spread per call"
     print(
@@ -80,6 +96,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--triangles", type=int, default=1_000_000)
     parser.add_argument("--rays", default=str(1 << 24), help="ray counts, comma-separated")
     parser.add_argument("--devices", type=int, help="devices to split the rays over (default: all)")
+    parser.add_argument("--layouts", default="image,interleaved", help="ray orders: image and/or interleaved")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--json", metavar="PATH")
     args = parser.parse_args(argv)
@@ -88,7 +105,16 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     print(f"{int(indices.shape[0]):,} triangles (noisy sphere)")
     intersector = rt.Intersector(rt.tags.triangle_data)
     mesh = rt.device_mesh(args.devices)
-    runs = [_run(int(c), structure, intersector, mesh, args.repeats) for c in args.rays.split(",")]
+    single = jax.jit(intersector.intersect)  # one device: compiled once per ray count
+    layouts = [x.strip() for x in args.layouts.split(",")]
+    for layout in layouts:
+        if layout not in ("image", "interleaved"):
+            raise ValueError(f"--layouts: expected image and/or interleaved, got {layout!r}")
+    runs = [
+        _run(int(c), layout, structure, intersector, single, mesh, args.repeats)
+        for c in args.rays.split(",")
+        for layout in layouts
+    ]
     results = dict(runs[0], machine=machine_info(), triangles=int(indices.shape[0]), runs=runs)
     if args.json:
         with open(args.json, "w") as f:
