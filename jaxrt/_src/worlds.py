@@ -146,6 +146,11 @@ def update_worlds(
 ) -> Any:
     """``fn`` run on the worlds selected by ``mask``; the other worlds keep ``previous``.
 
+    Work follows the bucket: the selected worlds, rounded up to ``capacity``. Inside ``jax.jit`` pass
+    ``capacity`` as a static value. Called on concrete arrays it compiles one program per ``fn``, capacity,
+    mesh and shapes. Gradients flow through a single bucket that holds every world (``capacity >= N``), not
+    through the loop of buckets.
+
     Args:
       fn: the update of one world, ``fn(*world_args) -> world_output``, an ordinary JAX function (e.g. build
         or refit the world's structure and trace its cameras). It must return one world of ``previous``:
@@ -164,11 +169,6 @@ def update_worlds(
 
     Returns:
       ``previous`` with the selected worlds replaced by ``fn``'s outputs.
-
-    Work follows the bucket: the selected worlds, rounded up to ``capacity``. Inside ``jax.jit`` pass
-    ``capacity`` as a static value. Called on concrete arrays it compiles one program per ``fn``, capacity,
-    mesh and shapes. Gradients flow through a single bucket that holds every world (``capacity >= N``), not
-    through the loop of buckets.
 
     Examples:
       >>> import jax.numpy as jnp, jaxrt as rt
