@@ -15,7 +15,9 @@ import subprocess
 import sys
 import textwrap
 
+import jax
 import numpy as np
+import pytest
 
 import jaxrt as rt
 from jaxrt._src import pipeline as pipeline
@@ -110,9 +112,41 @@ _SHARDED = textwrap.dedent(
     _check_against_oracle(step, spread[1], np.flatnonzero(SELECTED))
     for i in np.flatnonzero(~SELECTED):
         _assert_bitwise(_world(spread, i), _world(blank, i), f"world {i} changed")
+
+    # Seven worlds on a mesh with explicit axes (jax.make_mesh's default), eagerly and in jit, one world per
+    # bucket (several buckets on a device).
+    mask = np.array([True, False, True, False, True, True, False])
+    x, want = np.arange(7, dtype=np.float32), np.where(mask, 2 * np.arange(7), -1)
+    explicit = jax.make_mesh((4,), ("w",))
+    double = lambda v: 2 * v
+    eager = rt.update_worlds(double, mask, np.full(7, -1.0, np.float32), x, mesh=explicit)
+    np.testing.assert_array_equal(eager, want)
+    jitted = jax.jit(lambda m, p, x: rt.update_worlds(double, m, p, x, mesh=explicit, capacity=1))
+    np.testing.assert_array_equal(jitted(jnp.asarray(mask), jnp.full(7, -1.0), jnp.asarray(x)), want)
     print("sharded ok")
     """
 )
+
+
+def test_bad_sharding_arguments_raise_naming_them():
+    structure, rays = _scene_and_rays(4)
+    intersector = rt.Intersector()
+    with pytest.raises(TypeError, match="mesh must be a jax.sharding.Mesh"):
+        rt.intersect_sharded(intersector, rays, structure, mesh="gpu")
+    with pytest.raises(TypeError, match="rays must be a jaxrt.Ray"):
+        rt.intersect_sharded(intersector, rays.origin, structure)
+    with pytest.raises(TypeError, match="intersector must be an rt.Intersector"):
+        rt.intersect_sharded(None, rays, structure)
+    with pytest.raises(ValueError, match="has no ray"):
+        rt.intersect_sharded(intersector, _empty(rays), structure)
+    with pytest.raises(ValueError, match=r"devices must be in \[1, \d+\], got 0"):
+        rt.device_mesh(0)
+    with pytest.raises(ValueError, match="empty sequence"):
+        rt.device_mesh([])
+
+
+def _empty(rays):
+    return jax.tree_util.tree_map(lambda a: a[:0], rays)
 
 
 def test_rays_sharded_over_four_devices_equal_one_call():
