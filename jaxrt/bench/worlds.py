@@ -9,7 +9,8 @@ giving a depth image (hit distance, ``inf`` on a miss) and a segmentation image 
 
 Reported per image side, world count and mode: the full step (every world) in ms and in frames per second
 (one frame = one world's depth and segmentation images), the step with 10% of the worlds selected (the bucket
-rounded up to a power of two) and its cost against the full step, and the memory per world (the arrays the
+rounded up to a power of two) and its cost against the full step, the structures alone (every world rebuilt or
+refit, no camera: ``struct ms``, on one device), and the memory per world (the arrays the
 state keeps: structure and images; on a GPU also the device's peak over the run divided by the worlds). With
 ``--devices 1,4`` each configuration runs with the worlds split over the first 1 and the first 4 devices
 (``update_worlds(..., mesh=...)``) and the speed-up is printed.
@@ -117,6 +118,18 @@ def _build_at_start(params: dict[str, jax.Array]) -> rt.PrimitiveAccelerationStr
     return rt.build_primitive_structure(world_geometries(params, jnp.float32(0)))
 
 
+@jax.jit
+@jax.vmap
+def _rebuild_all(params: dict[str, jax.Array], t: jax.Array) -> rt.PrimitiveAccelerationStructure:
+    return rt.build_primitive_structure(world_geometries(params, t))
+
+
+@jax.jit
+@jax.vmap
+def _refit_all(params: dict[str, jax.Array], t: jax.Array, structure: Any) -> rt.PrimitiveAccelerationStructure:
+    return rt.refit(structure, world_geometries(params, t))
+
+
 def initial_state(params: dict[str, jax.Array], side: int) -> tuple:
     """Every world built at ``t = 0``, its images empty: ``(structures, depth, segmentation)``."""
     worlds = params["scale"].shape[0]
@@ -170,6 +183,11 @@ def measure(worlds: int, side: int, rebuild: bool, devices: int, fraction: float
     partial, out = timed(lambda: run(partial_mask, capacity), repeats)
     structures, depth, segmentation = out
     state_bytes = nbytes(out)
+    structure_s = None
+    if mesh is None:  # the structures alone (no camera), every world: the build's share of the full step
+        t = jnp.full(worlds, 0.5, jnp.float32)
+        alone = (lambda: _rebuild_all(params, t)) if rebuild else (lambda: _refit_all(params, t, structures))
+        structure_s = timed(alone, repeats)[0].median_s
     return {
         "worlds": worlds,
         "side": side,
@@ -180,6 +198,7 @@ def measure(worlds: int, side: int, rebuild: bool, devices: int, fraction: float
         "partial": dict(partial.as_dict(int(chosen.sum()), unit="mframes_s"), worlds=int(chosen.sum())),
         "partial_capacity": capacity,
         "partial_cost": partial.median_s / full.median_s,
+        "structures_alone_s": structure_s,
         "bytes_per_world": state_bytes / worlds,
         "structure_bytes_per_world": nbytes(structures) / worlds,
         "hit_fraction": float(jnp.mean(segmentation >= 0)),
@@ -217,7 +236,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     )
     print(
         f"{'side':>5s} {'worlds':>6s} {'mode':>8s} {'dev':>3s} {'full ms':>9s} {'frames/s':>11s} "
-        f"{'part ms':>8s} {'part/full':>9s} {'bucket':>6s} {'KB/world':>8s} {'hit':>5s} {'compile s':>9s}"
+        f"{'part ms':>8s} {'part/full':>9s} {'bucket':>6s} {'struct ms':>9s} {'KB/world':>8s} {'hit':>5s} "
+        f"{'compile s':>9s}"
     )
     rows = []
     start = time.perf_counter()
@@ -227,10 +247,13 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                 for d in devices:
                     row = measure(n, side, mode == "rebuild", d, args.fraction, args.repeats)
                     rows.append(row)
+                    alone = row["structures_alone_s"]
+                    struct = "-" if alone is None else f"{alone * 1e3:.2f}"
                     print(
                         f"{side:5d} {n:6d} {mode:>8s} {d:3d} {row['full']['median_s'] * 1e3:9.2f} "
                         f"{row['frames_s']:11,.0f} {row['partial']['median_s'] * 1e3:8.2f} {row['partial_cost']:9.1%} "
-                        f"{row['partial_capacity'] * d:6d} {row['bytes_per_world'] / 1e3:8.1f} {row['hit_fraction']:5.2f} "
+                        f"{row['partial_capacity'] * d:6d} {struct:>9s} {row['bytes_per_world'] / 1e3:8.1f} "
+                        f"{row['hit_fraction']:5.2f} "
                         f"{row['full']['compile_s']:9.1f}",
                         flush=True,
                     )
