@@ -206,9 +206,10 @@ def intersect_sharded(intersector: Any, rays: Ray, structure: Any, *, mesh: Mesh
         spread = flat if exact else jax.tree_util.tree_map(lambda a: _spread(jnp, a, n, devices, per, rows), flat)
         spread = jax.device_put(spread, sharding)
     else:  # several processes: each fills the rows of its own devices from its (identical) host copy
-        host = jax.tree_util.tree_map(lambda a: _spread(np, np.asarray(a), n, devices, per, rows), flat)
-        spread = jax.tree_util.tree_map(
-            lambda a: jax.make_array_from_callback(a.shape, sharding, lambda index: a[index]), host
+        leaves, tree = jax.tree_util.tree_flatten(flat)
+        host = [_spread(np, np.asarray(a), n, devices, per, rows) for a in leaves]  # numpy: no device copy
+        spread = jax.tree_util.tree_unflatten(
+            tree, [jax.make_array_from_callback(a.shape, sharding, lambda index, a=a: a[index]) for a in host]
         )
     out = _program(intersector, mesh)(spread, replicate(structure, mesh))
     if exact and len(shape) == 1:
