@@ -174,6 +174,10 @@ def measure(worlds: int, side: int, rebuild: bool, devices: int, fraction: float
         return holder[0]
 
     full_mask = jnp.ones(worlds, bool)
+    start = time.perf_counter()
+    jax.block_until_ready(run(full_mask, worlds))  # compiles
+    first_s = time.perf_counter() - start
+    # timed's own first call is the second step: a step whose state came back laid out otherwise may compile again.
     full, _ = timed(lambda: run(full_mask, worlds), repeats)
     rng = np.random.default_rng(1)
     chosen = np.zeros(worlds, bool)
@@ -194,6 +198,7 @@ def measure(worlds: int, side: int, rebuild: bool, devices: int, fraction: float
         "mode": "rebuild" if rebuild else "refit",
         "devices": devices,
         "full": full.as_dict(worlds, unit="mframes_s"),
+        "first_step_s": first_s,
         "frames_s": worlds / full.median_s,
         "partial": dict(partial.as_dict(int(chosen.sum()), unit="mframes_s"), worlds=int(chosen.sum())),
         "partial_capacity": capacity,
@@ -254,7 +259,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                         f"{row['frames_s']:11,.0f} {row['partial']['median_s'] * 1e3:8.2f} {row['partial_cost']:9.1%} "
                         f"{row['partial_capacity'] * d:6d} {struct:>9s} {row['bytes_per_world'] / 1e3:8.1f} "
                         f"{row['hit_fraction']:5.2f} "
-                        f"{row['full']['compile_s']:9.1f}",
+                        f"{row['first_step_s'] - row['full']['median_s']:9.1f}",
                         flush=True,
                     )
     peak = _peak_bytes()
