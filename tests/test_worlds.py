@@ -145,3 +145,13 @@ def test_bad_worlds_arguments_raise_naming_them():
         rt.update_worlds(double, jnp.ones(4, bool), state, jnp.arange(4.0), capacity=0)
     with pytest.raises(TypeError, match="mesh must be a jax.sharding.Mesh"):
         rt.update_worlds(double, jnp.ones(4, bool), state, jnp.arange(4.0), mesh="gpu")
+
+
+def test_gradients_flow_through_a_bucket_of_every_world():
+    mask = jnp.array([True, False, True, True])
+    x = jnp.array([1.0, 2.0, 3.0, 4.0])
+
+    def loss(x):
+        return jnp.sum(rt.update_worlds(jnp.square, mask, jnp.zeros(4), x, capacity=4))
+
+    np.testing.assert_array_equal(jax.grad(loss)(x), np.where(mask, 2 * x, 0.0))
