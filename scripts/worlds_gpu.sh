@@ -65,7 +65,7 @@ step sharded 110 python3 -m jaxrt.bench.sharded --triangles "$triangles" --rays 
   --json "$out/sharded.json"
 step worlds_devices 90 python3 -m jaxrt.bench.worlds --worlds "$big" --sides "$sides" --modes rebuild --devices 1,4 \
   --repeats 3 --json "$out/worlds_devices.json"
-step worlds_table 150 env CUDA_VISIBLE_DEVICES=0 python3 -m jaxrt.bench.worlds --worlds "$worlds" --sides "$sides" \
+step worlds_table 200 env CUDA_VISIBLE_DEVICES=0 python3 -m jaxrt.bench.worlds --worlds "$worlds" --sides "$sides" \
   --modes rebuild,refit --repeats 3 --json "$out/worlds_table.json"
 step tests_worlds 60 python3 -m pytest tests/test_worlds.py -q -p no:cacheprovider -x -rs
 echo "done in ${SECONDS} s; logs and JSON in $out"
