@@ -36,10 +36,12 @@ from jaxrt._src.primitives.curve import CurveOptions
 from jaxrt._src.query import IntersectionQuery, intersection_query
 from jaxrt._src.ray import Ray
 from jaxrt._src.result import IntersectionResult, IntersectionType
+from jaxrt._src.sharding import device_mesh, intersect_sharded, replicate
 from jaxrt._src.sizes import StructureSizes, structure_sizes
 from jaxrt._src.structures import PrimitiveAccelerationStructure, build_primitive_structure
 from jaxrt._src.topology import boundary_edge_count, is_closed
 from jaxrt._src.winding import contains, signed_distance, winding_number
+from jaxrt._src.worlds import update_worlds, worlds_capacity
 
 __version__ = "0.1.0"
 
@@ -78,6 +80,8 @@ __all__ = [
     "contains",
     "count_intersections",
     "debug",
+    "device_mesh",
+    "intersect_sharded",
     "intersection_functions",
     "intersection_query",
     "io",
@@ -85,11 +89,14 @@ __all__ = [
     "load",
     "offset_ray_origin",
     "refit",
+    "replicate",
     "sah_cost",
     "save",
     "shading",
     "signed_distance",
     "structure_sizes",
     "tags",
+    "update_worlds",
     "winding_number",
+    "worlds_capacity",
 ]

@@ -2,7 +2,10 @@
 
 The sharded test runs in a subprocess with ``XLA_FLAGS=--xla_force_host_platform_device_count=4`` (the flag
 must be set before JAX starts), tracing rays split over four CPU devices with ``jax.shard_map`` around
-``Intersector.intersect``, the structure replicated: the way docs/performance.md gives for several GPUs.
+``Intersector.intersect``, the structure replicated: by hand, as docs/performance.md gives, and through
+``rt.intersect_sharded`` for ray counts that do not divide by the devices (eagerly and inside ``jit``). The
+worlds of tests/test_worlds.py are then updated split over the four devices (six worlds: two padding worlds
+are added and cut) and checked against the float64 oracle. tests/test_multihost.py runs two processes.
 """
 
 from __future__ import annotations
@@ -12,7 +15,9 @@ import subprocess
 import sys
 import textwrap
 
+import jax
 import numpy as np
+import pytest
 
 import jaxrt as rt
 from jaxrt._src import pipeline as pipeline
@@ -76,9 +81,72 @@ _SHARDED = textwrap.dedent(
     assert len({s.device for s in out.distance.addressable_shards}) == 4
     assert int((reference.primitive_id >= 0).sum()) > 100
     _assert_same(out, reference)
+
+    # Any ray count, any batch shape: padded in equal rows (250.25 rays per device here), cut again.
+    structure, rays = _scene_and_rays(1001, seed=1)
+    reference = intersector.intersect(rays, structure)
+    out = rt.intersect_sharded(intersector, rays, structure)
+    assert out.distance.shape == (1001,)
+    assert len({s.device for s in out.distance.addressable_shards}) == 4
+    _assert_same(out, reference)
+    grid = jax.tree.map(lambda a: a[:91], rays).reshape(7, 13)  # 23 rays per device, padded to 32
+    inside = jax.jit(lambda r, s: rt.intersect_sharded(intersector, r, s, mesh=mesh))(grid, structure)
+    assert inside.triangle_barycentric_coord.shape == (7, 13, 2)
+    _assert_same(inside, jax.tree.map(lambda a: a[:91].reshape(7, 13, *a.shape[1:]), reference))
+    two = rt.intersect_sharded(intersector, jax.tree.map(lambda a: a[:3], rays), structure, mesh=rt.device_mesh(2))  # fewer rays than rows
+    _assert_same(two, jax.tree.map(lambda a: a[:3], reference))
+
+    # Worlds split over the devices (six worlds: two padding worlds added and cut): the selected ones match the
+    # float64 oracle (tests/test_worlds.py compares partial and full updates on one device), the others are as
+    # they were.
+    import jax.numpy as jnp
+    from test_worlds import SELECTED, WORLDS, _FUNCTIONS, _assert_bitwise, _check_against_oracle, _world, inputs
+
+    fn = _FUNCTIONS["rebuild"]
+    step = inputs(np.linspace(0.4, 1.4, WORLDS))
+    shapes = jax.eval_shape(jax.vmap(fn), *step, None)
+    blank = jax.tree.map(lambda a: jnp.full(a.shape, 7, a.dtype), shapes)
+    mesh = rt.device_mesh(4, "worlds")
+    spread = rt.update_worlds(fn, jnp.asarray(SELECTED), blank, *step, blank[0], mesh=mesh)
+    assert len({s.device for s in spread[1].distance.addressable_shards}) == 4
+    _check_against_oracle(step, spread[1], np.flatnonzero(SELECTED))
+    for i in np.flatnonzero(~SELECTED):
+        _assert_bitwise(_world(spread, i), _world(blank, i), f"world {i} changed")
+
+    # Seven worlds on a mesh with explicit axes (jax.make_mesh's default), eagerly and in jit, one world per
+    # bucket (several buckets on a device).
+    mask = np.array([True, False, True, False, True, True, False])
+    x, want = np.arange(7, dtype=np.float32), np.where(mask, 2 * np.arange(7), -1)
+    explicit = jax.make_mesh((4,), ("w",))
+    double = lambda v: 2 * v
+    eager = rt.update_worlds(double, mask, np.full(7, -1.0, np.float32), x, mesh=explicit)
+    np.testing.assert_array_equal(eager, want)
+    jitted = jax.jit(lambda m, p, x: rt.update_worlds(double, m, p, x, mesh=explicit, capacity=1))
+    np.testing.assert_array_equal(jitted(jnp.asarray(mask), jnp.full(7, -1.0), jnp.asarray(x)), want)
     print("sharded ok")
     """
 )
+
+
+def test_bad_sharding_arguments_raise_naming_them():
+    structure, rays = _scene_and_rays(4)
+    intersector = rt.Intersector()
+    with pytest.raises(TypeError, match="mesh must be a jax.sharding.Mesh"):
+        rt.intersect_sharded(intersector, rays, structure, mesh="gpu")
+    with pytest.raises(TypeError, match="rays must be a jaxrt.Ray"):
+        rt.intersect_sharded(intersector, rays.origin, structure)
+    with pytest.raises(TypeError, match="intersector must be an rt.Intersector"):
+        rt.intersect_sharded(None, rays, structure)
+    with pytest.raises(ValueError, match="has no ray"):
+        rt.intersect_sharded(intersector, _empty(rays), structure)
+    with pytest.raises(ValueError, match=r"devices must be in \[1, \d+\], got 0"):
+        rt.device_mesh(0)
+    with pytest.raises(ValueError, match="empty sequence"):
+        rt.device_mesh([])
+
+
+def _empty(rays):
+    return jax.tree_util.tree_map(lambda a: a[:0], rays)
 
 
 def test_rays_sharded_over_four_devices_equal_one_call():
