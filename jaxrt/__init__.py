@@ -13,7 +13,7 @@ Examples:
 from jaxrt._src import versions as _versions  # noqa: F401
 
 # isort: split
-from jaxrt import debug, intersection_functions, io, shading, tags
+from jaxrt import debug, intersection_functions, io, shading, tags, visibility
 from jaxrt._src.bvh.sah import sah_cost
 from jaxrt._src.candidate import BoundingBoxCandidate, TriangleCandidate
 from jaxrt._src.checks import BuildCheckError
@@ -31,6 +31,7 @@ from jaxrt._src.intersector import Intersector, count_intersections
 from jaxrt._src.io.structure_file import load, save
 from jaxrt._src.motion import MotionSpec
 from jaxrt._src.numerics import offset_ray_origin
+from jaxrt._src.pixel_integral import pixel_integral
 from jaxrt._src.point_query import ClosestPointResult, closest_point
 from jaxrt._src.primitives.curve import CurveOptions
 from jaxrt._src.query import IntersectionQuery, intersection_query
@@ -38,6 +39,7 @@ from jaxrt._src.ray import Ray
 from jaxrt._src.result import IntersectionResult, IntersectionType
 from jaxrt._src.sizes import StructureSizes, structure_sizes
 from jaxrt._src.structures import PrimitiveAccelerationStructure, build_primitive_structure
+from jaxrt._src.visibility import DirectionalLight, PinholeCamera, PointLight, SilhouetteMesh
 from jaxrt._src.winding import contains, signed_distance, winding_number
 
 __version__ = "0.1.0"
@@ -52,6 +54,7 @@ __all__ = [
     "CurveGeometry",
     "CurveOptions",
     "CurveType",
+    "DirectionalLight",
     "InstanceAccelerationStructure",
     "InstanceOptions",
     "Instances",
@@ -63,8 +66,11 @@ __all__ = [
     "MotionCurveGeometry",
     "MotionSpec",
     "MotionTriangleGeometry",
+    "PinholeCamera",
+    "PointLight",
     "PrimitiveAccelerationStructure",
     "Ray",
+    "SilhouetteMesh",
     "StructureSizes",
     "TriangleCandidate",
     "TriangleGeometry",
@@ -80,6 +86,7 @@ __all__ = [
     "io",
     "load",
     "offset_ray_origin",
+    "pixel_integral",
     "refit",
     "sah_cost",
     "save",
@@ -87,5 +94,6 @@ __all__ = [
     "signed_distance",
     "structure_sizes",
     "tags",
+    "visibility",
     "winding_number",
 ]
