@@ -413,7 +413,10 @@ def shadow_edge_samples(
         x, depth = camera.project(y)
         return x, (hit, depth)
 
-    position, tangent, (hit, depth) = jax.jvp(receiver, (tau,), (jnp.ones_like(tau),), has_aux=True)
+    # The tangent along the edge by forward mode; the attached position by a plain call: the outer derivative
+    # of a primal computed inside jax.jvp would miss the hit's custom derivative rule.
+    position, (hit, depth) = receiver(tau)
+    _, tangent, _ = jax.jvp(receiver, (tau,), (jnp.ones_like(tau),), has_aux=True)
     tangent = detached(tangent)
     speed = jnp.linalg.norm(tangent, axis=-1)
     normal = jnp.stack([-tangent[:, 1], tangent[:, 0]], axis=-1) / jnp.where(speed > 0, speed, 1.0)[:, None]
