@@ -91,6 +91,10 @@ def _oriented(poly: np.ndarray) -> np.ndarray:
     return poly if _area(poly) >= 0 else poly[::-1]
 
 
+def _turn(o, a, b) -> float:
+    return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+
+
 def hull(points: np.ndarray) -> np.ndarray:
     """Convex hull (monotone chain), positive orientation."""
     pts = sorted(map(tuple, points))
@@ -98,7 +102,7 @@ def hull(points: np.ndarray) -> np.ndarray:
     def half(seq):
         out = []
         for p in seq:
-            while len(out) >= 2 and np.cross(np.subtract(out[-1], out[-2]), np.subtract(p, out[-2])) <= 0:
+            while len(out) >= 2 and _turn(out[-2], out[-1], p) <= 0:
                 out.pop()
             out.append(p)
         return out
