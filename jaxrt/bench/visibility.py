@@ -12,10 +12,10 @@ Three measurements (pick with the first argument; default all):
   samples per pixel, with ``samples per pixel * 16 * 16 * 2`` edge samples (and as many again per light).
 - ``cost``: a 512 x 512 image of the Stanford bunny (``../shared/data`` or ``$JAXRT_DATA_DIR``; skipped with a
   message when absent): the forward pixel integral against ``jax.value_and_grad`` of an image loss with respect
-  to the bunny's translation, with and without edge samples. Target: gradient at most 3x forward.
+  to the bunny's translation, with plain autodiff and with edge samples. Target: gradient at most 3x forward.
 
 Flags: ``--quick`` (fewer seeds and configurations, a 64 x 64 image: a smoke test), ``--seeds``, ``--size``,
-``--edge-samples``, ``--backend``, ``--repeats``, ``--json PATH``.
+``--edge-samples`` (comma-separated counts), ``--backend``, ``--repeats``, ``--json PATH``.
 """
 
 from __future__ import annotations
@@ -135,7 +135,7 @@ def variance(seeds: int, quick: bool) -> list[dict[str, Any]]:
     return rows
 
 
-def cost(size: int, edge_samples: int, backend: str, repeats: int) -> dict[str, Any] | None:
+def cost(size: int, edge_samples: Sequence[int], backend: str, repeats: int) -> dict[str, Any] | None:
     """Forward against value-and-gradient of a bunny image loss; ``None`` (with a message) without the data."""
     from jaxrt.bench.scenes import shared_mesh
 
@@ -173,12 +173,17 @@ def cost(size: int, edge_samples: int, backend: str, repeats: int) -> dict[str, 
     def loss(t, edges):
         return jnp.mean((render(t, edges) - target) ** 2)
 
-    forward = jax.jit(lambda t: render(t, 0))
-    plain = jax.jit(jax.value_and_grad(lambda t: loss(t, 0)))
-    edged = jax.jit(jax.value_and_grad(lambda t: loss(t, edge_samples)))
-    result: dict[str, Any] = {"size": size, "triangles": int(len(faces)), "edge_samples": edge_samples}
+    measurements = [
+        ("forward", jax.jit(lambda t: render(t, 0))),
+        ("grad, plain autodiff", jax.jit(jax.value_and_grad(lambda t: loss(t, 0)))),
+    ]
+    for count in edge_samples:
+        measurements.append(
+            (f"grad, {count} edge samples", jax.jit(jax.value_and_grad(lambda t, count=count: loss(t, count))))
+        )
+    result: dict[str, Any] = {"size": size, "triangles": int(len(faces)), "device": jax.devices()[0].device_kind}
     base = None
-    for label, fn in (("forward", forward), ("grad, plain autodiff", plain), ("grad, edge sampling", edged)):
+    for label, fn in measurements:
         timing, out = timed(lambda fn=fn: fn(translation), repeats)
         base = base or timing.median_s
         result[label] = dict(timing.as_dict(), ratio=timing.median_s / base)
@@ -197,7 +202,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--quick", action="store_true", help="few seeds and configurations, a 64 x 64 bunny")
     parser.add_argument("--seeds", type=int, default=None, help="keys per estimate (default 16; quick 4)")
     parser.add_argument("--size", type=int, default=None, help="bunny image width and height (default 512)")
-    parser.add_argument("--edge-samples", type=int, default=16384, help="edge samples of the bunny image")
+    parser.add_argument(
+        "--edge-samples", default="4096,16384", help="edge samples of the bunny image, comma-separated (one row each)"
+    )
     parser.add_argument("--backend", default="auto", help="the bunny intersector's backend")
     parser.add_argument("--repeats", type=int, default=3, help="warm calls per cost measurement")
     parser.add_argument("--json", metavar="PATH", help="also write every number to PATH")
@@ -221,7 +228,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     if "variance" in what:
         out["variance"] = variance(seeds, args.quick)
     if "cost" in what:
-        out["cost"] = cost(size, args.edge_samples, args.backend, 1 if args.quick else args.repeats)
+        counts = [int(c) for c in str(args.edge_samples).split(",") if c]
+        out["cost"] = cost(size, counts, args.backend, 1 if args.quick else args.repeats)
     if args.json:
         with open(args.json, "w") as f:
             json.dump(out, f, indent=1)
