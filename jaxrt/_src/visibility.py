@@ -341,13 +341,17 @@ def primary_edge_samples(
     s = s0[index] + fraction * (s1[index] - s0[index])
     # Screen parameter s to the world parameter along [pa, pb] (perspective: t = s za / ((1 - s) zb + s za)).
     za_i, zb_i = za[index], zb[index]
-    t = s * za_i / ((1.0 - s) * zb_i + s * za_i)
+    valid = (total > 0) & (lengths[index] > 0)
+    denominator = (1.0 - s) * zb_i + s * za_i
+    t = s * za_i / jnp.where(valid & (denominator > 0), denominator, 1.0)
+    # Invalid samples (nothing to sample) take an edge's midpoint: finite, with zero weight and gradient.
+    t = jnp.where(valid, jnp.clip(t, 0.0, 1.0), 0.5)
     tau = detached(t0[index] + t * (t1[index] - t0[index]))
     point = a[index] + tau[:, None] * (b[index] - a[index])  # attached: moves with the vertices
     position, _ = camera.project(point)
     tangent = detached(xb[index] - xa[index])
     normal = _normalize(jnp.stack([-tangent[:, 1], tangent[:, 0]], axis=-1))
-    weight = jnp.where((total > 0) & (lengths[index] > 0), total / count, 0.0)
+    weight = jnp.where(valid, total / count, 0.0)
     return EdgeSamples(position, normal, detached(weight))
 
 
