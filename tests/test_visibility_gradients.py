@@ -36,14 +36,14 @@ def _check(name: str, estimate: dict, reference: dict) -> None:
         assert not wrong.any(), f"{name}/{group}: sign differs at {np.flatnonzero(wrong)}\nest {est}\nref {ref}"
 
 
-@pytest.mark.parametrize("name", ["silhouette", "occlusion", "shadow", "instanced_far"])
+@pytest.mark.parametrize("name", ["silhouette", "occlusion", "shadow", "shadow_point", "instanced_far"])
 def test_gradients_match_central_differences(name):
     with jax.enable_x64(True):
         from jaxrt.bench import visibility_scenes
 
         scene = visibility_scenes.scenes()[name]
         reference = visibility_scenes.exact_gradient(scene)
-        shadows = SHADOW_EDGE_SAMPLES if name == "shadow" else 0
+        shadows = SHADOW_EDGE_SAMPLES if name.startswith("shadow") else 0
         grad = visibility_scenes.estimator_gradient(scene, None, SAMPLES_PER_PIXEL, EDGE_SAMPLES, shadows)
         params = {k: jnp.asarray(v) for k, v in scene.params.items()}
         if name == "silhouette":  # jit of vmap over keys: two independent estimates, each within tolerance

@@ -387,13 +387,13 @@ def shadow_edge_samples(
             return jnp.broadcast_to(-towards, q.shape)
 
     elif isinstance(light, PointLight):
-        position = jnp.asarray(light.position, camera.eye.dtype)
+        light_position = jnp.asarray(light.position, camera.eye.dtype)
 
         def facing(n, c):
-            return jnp.sum(n * (c - position), axis=-1) > 0
+            return jnp.sum(n * (c - light_position), axis=-1) > 0
 
         def away(q):
-            return _normalize(q - position)
+            return _normalize(q - light_position)
 
     else:
         raise TypeError(

@@ -86,7 +86,7 @@ def compare(seeds: int, quick: bool) -> list[dict[str, Any]]:
         for name, scene in visibility_scenes.scenes().items():
             reference = visibility_scenes.exact_gradient(scene)
             params = {k: jnp.asarray(v) for k, v in scene.params.items()}
-            shadows = 4096 if name == "shadow" else 0
+            shadows = 4096 if name.startswith("shadow") else 0
             methods = [
                 ("plain autodiff", visibility_scenes.estimator_gradient(scene, None, spp, 0, 0), spp * pixels),
                 (
@@ -121,7 +121,7 @@ def variance(seeds: int, quick: bool) -> list[dict[str, Any]]:
             params = {k: jnp.asarray(v) for k, v in scene.params.items()}
             for spp in (1, 4) if quick else (1, 4, 16, 64):
                 edges = 2 * spp * pixels
-                shadows = edges if name == "shadow" else 0
+                shadows = edges if name.startswith("shadow") else 0
                 fn = visibility_scenes.estimator_gradient(scene, None, spp, edges, shadows)
                 error, spread = _seeds_stats(fn, params, reference, seeds)
                 rows.append(

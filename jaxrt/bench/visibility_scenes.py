@@ -14,6 +14,8 @@ Scenes (parameters in brackets):
   whose outline the octahedron hides [octahedron translation and rotation, the triangle's x, y vertices];
 - ``shadow``: an octahedron above a ground plane that fills the image, lit by a directional light: its shadow
   edge on the plane is secondary visibility [vertex offsets, translation, rotation];
+- ``shadow_point``: the same lit by a point light [vertex offsets, translation, rotation, the light's
+  position];
 - ``instanced_far``: an octahedron with one colour per face (every edge a discontinuity), placed by an
   ``rt.Instances`` transform 3,700 units from the origin, camera with it [the instance's rotation and
   translation, object-space vertex offsets].
@@ -275,9 +277,10 @@ def _occlusion() -> Scene:
 
 LIGHT = np.array([0.4, 1.0, 0.3]) / np.linalg.norm([0.4, 1.0, 0.3])
 GROUND = -0.6
+LIGHT_POSITION = np.array([0.5, 1.4, 0.4])
 
 
-def _shadow() -> Scene:
+def _shadow(point: bool = False) -> Scene:
     base = 0.3 * OCTAHEDRON + np.array([0.0, -0.1, 0.0])
     camera = Camera(np.array([0.0, 1.2, 2.2]), np.array([0.0, GROUND, 0.0]))
     plane = np.array([[-20, GROUND, -20], [20, GROUND, -20], [20, GROUND, 20], [-20, GROUND, 20]], np.float64)
@@ -286,6 +289,8 @@ def _shadow() -> Scene:
         "translation": np.array([0.05, 0.0, -0.05]),
         "rotation": np.array([0.2, 0.5, -0.1]),
     }
+    if point:
+        params["light"] = LIGHT_POSITION.copy()
     faces = np.concatenate([OCTAHEDRON_FACES, np.array([[6, 8, 7], [6, 9, 8]])])
     intersector = rt.Intersector()
     occluded = rt.Intersector(accept_any_intersection=True)
@@ -293,19 +298,21 @@ def _shadow() -> Scene:
     def render(p, key, spp, edges, shadows):
         v = jnp.concatenate([_posed(p, base), jnp.asarray(plane)])
         s = rt.build_primitive_structure(rt.TriangleGeometry(v, faces))
-        light = jnp.asarray(LIGHT)
 
         def shade(rays):
             hits = intersector.intersect(rays, s)
             on_plane = hits.primitive_id >= 8
-            point = rays.origin + jnp.where(hits.type != 0, hits.distance, 0.0)[:, None] * rays.direction
-            shadow_rays = rt.Ray(
-                point, jnp.broadcast_to(light, point.shape), 1e-6, jnp.inf, jnp.where(on_plane, 0xFF, 0)
-            )
+            x = rays.origin + jnp.where(hits.type != 0, hits.distance, 0.0)[:, None] * rays.direction
+            mask = jnp.where(on_plane, 0xFF, 0)
+            if point:  # towards the light, up to it
+                shadow_rays = rt.Ray(x, p["light"] - x, 1e-6, 1.0, mask)
+            else:
+                shadow_rays = rt.Ray(x, jnp.broadcast_to(jnp.asarray(LIGHT), x.shape), 1e-6, jnp.inf, mask)
             lit = occluded.intersect(shadow_rays, s).type == 0
             return jnp.where(on_plane, jnp.where(lit, 0.8, 0.3), jnp.where(hits.type != 0, 1.0, 0.0))
 
         mesh = rt.SilhouetteMesh(_posed(p, base), OCTAHEDRON_FACES)
+        light = rt.PointLight(p["light"]) if point else rt.DirectionalLight(jnp.asarray(LIGHT))
         return rt.pixel_integral(
             shade,
             camera.jax(),
@@ -313,7 +320,7 @@ def _shadow() -> Scene:
             samples_per_pixel=spp,
             meshes=[mesh],
             edge_samples=edges,
-            lights=[rt.DirectionalLight(light)],
+            lights=[light],
             shadow_edge_samples_per_light=shadows,
             trace=lambda rays: intersector.intersect(rays, s),
         )
@@ -321,12 +328,16 @@ def _shadow() -> Scene:
     def exact(p):
         v = _posed(p, base)
         front = hull(camera.project(v))
-        on_ground = v - ((v[:, 1] - GROUND) / LIGHT[1])[:, None] * LIGHT
+        if point:
+            light = p["light"]
+            on_ground = light + (v - light) * ((GROUND - light[1]) / (v[:, 1] - light[1]))[:, None]
+        else:
+            on_ground = v - ((v[:, 1] - GROUND) / LIGHT[1])[:, None] * LIGHT
         shadow = hull(camera.project(on_ground))
         both = clip(shadow, front)
         return 0.8 + integrate(front, 0.2) + integrate(shadow, -0.5) - integrate(both, -0.5)
 
-    return Scene("shadow", params, camera, render, exact)
+    return Scene("shadow_point" if point else "shadow", params, camera, render, exact)
 
 
 def _instanced_far() -> Scene:
@@ -370,7 +381,7 @@ def _instanced_far() -> Scene:
 
 def scenes() -> dict[str, Scene]:
     """Every scene by name."""
-    return {s.name: s for s in (_silhouette(), _occlusion(), _shadow(), _instanced_far())}
+    return {s.name: s for s in (_silhouette(), _occlusion(), _shadow(), _shadow(point=True), _instanced_far())}
 
 
 def flatten(params: dict) -> tuple[np.ndarray, Callable[[np.ndarray], dict]]:
