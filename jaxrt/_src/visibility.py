@@ -190,6 +190,12 @@ class SilhouetteMesh:
 
     Raises:
       ValueError: bad shapes, non-concrete or out-of-range indices.
+
+    Examples:
+      >>> import jaxrt as rt
+      >>> mesh = rt.SilhouetteMesh([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], [[0, 1, 2], [0, 2, 3]])
+      >>> mesh.edges.shape, int(mesh.always.sum())  # five edges, four on the boundary
+      ((5, 2), 4)
     """
 
     vertices: jax.Array
