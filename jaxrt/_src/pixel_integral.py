@@ -34,7 +34,7 @@ def pixel_integral(
     lights: Sequence[DirectionalLight | PointLight] = (),
     shadow_edge_samples_per_light: int = 0,
     trace: Callable[[Ray], Any] | None = None,
-    edge_offset: float = 1e-3,
+    edge_offset: float | None = None,
 ) -> jax.Array:
     """The image ``(height, width, ...)``: each pixel's mean of ``shade`` over its area, with the boundary term.
 
@@ -60,7 +60,8 @@ def pixel_integral(
       shadow_edge_samples_per_light: samples on each light's shadow edges (static).
       trace: ``rays -> rt.IntersectionResult`` on the scene (e.g. ``lambda r: intersector.intersect(r, s)``),
         needed with ``lights``.
-      edge_offset: how far either side of an edge, in pixels, its two shading rays go.
+      edge_offset: how far either side of an edge, in pixels, its two shading rays go (``None``: 1e-3 in
+        float32, 1e-5 in float64; see :func:`~jaxrt.visibility.edge_differences`).
 
     Returns:
       ``(height, width)`` or ``(height, width, C)`` pixel values.
