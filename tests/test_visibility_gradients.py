@@ -121,5 +121,7 @@ def test_silhouette_mesh_edges_and_errors():
     camera = rt.PinholeCamera(4, 4, eye=(0, 0, 1), target=(0, 0, 0))
     with pytest.raises(ValueError, match="no trace function"):
         rt.pixel_integral(lambda r: r.direction[:, 0], camera, jax.random.key(0), lights=[rt.DirectionalLight(1)])
+    with pytest.raises(ValueError, match="edge_samples must be an int >= 0"):
+        rt.pixel_integral(lambda r: r.direction[:, 0], camera, jax.random.key(0), edge_samples=-1)
     with pytest.raises(ValueError, match="meshes is empty"):
         rt.pixel_integral(lambda r: r.direction[:, 0], camera, jax.random.key(0), edge_samples=16)

@@ -7,6 +7,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxrt._src.ray import Ray
 from jaxrt._src.visibility import (
@@ -67,7 +68,7 @@ def pixel_integral(
       ``(height, width)`` or ``(height, width, C)`` pixel values.
 
     Raises:
-      ValueError: lights without ``trace``, or edge samples without meshes.
+      ValueError: a negative or non-int sample count, lights without ``trace``, or edge samples without meshes.
 
     Examples:
       >>> import jaxrt as rt
@@ -82,6 +83,12 @@ def pixel_integral(
       >>> bool(g[0] < 0)  # moving right takes coverage out of the left half
       True
     """
+    for name, value in (
+        ("edge_samples", edge_samples),
+        ("shadow_edge_samples_per_light", shadow_edge_samples_per_light),
+    ):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
+            raise ValueError(f"pixel_integral: {name} must be an int >= 0, got {value!r}")
     if lights and trace is None:
         raise ValueError("pixel_integral: lights were given but no trace function to find where shadows fall")
     if (edge_samples or (lights and shadow_edge_samples_per_light)) and not meshes:

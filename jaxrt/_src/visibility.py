@@ -458,7 +458,9 @@ def edge_differences(
     if offset is None:
         offset = 1e-3 if x.dtype == jnp.float32 else 1e-5
     rays = camera.rays(jnp.concatenate([x - offset * n, x + offset * n]))
-    values = shade(jax.tree_util.tree_map(detached, rays))
+    values = jnp.asarray(shade(jax.tree_util.tree_map(detached, rays)))
+    if not jnp.issubdtype(values.dtype, jnp.inexact):  # a mask: differences need a signed type
+        values = values.astype(x.dtype)
     count = x.shape[0]
     return detached(values[:count] - values[count:])
 
