@@ -15,7 +15,7 @@ Three measurements (pick with the first argument; default all):
   to the bunny's translation, with plain autodiff and with edge samples. Target: gradient at most 3x forward.
 
 Flags: ``--quick`` (fewer seeds and configurations, a 64 x 64 image: a smoke test), ``--seeds``, ``--size``,
-``--edge-samples`` (comma-separated counts), ``--backend``, ``--repeats``, ``--json PATH``.
+``--edge-samples`` (comma-separated counts), ``--scenes``, ``--backend``, ``--repeats``, ``--json PATH``.
 """
 
 from __future__ import annotations
@@ -77,13 +77,21 @@ def _seeds_stats(fn, params, reference, seeds: int) -> tuple[float, float]:
     return float(errors.mean()), float(spread)
 
 
-def compare(seeds: int, quick: bool) -> list[dict[str, Any]]:
+def _chosen(names: Sequence[str] | None) -> dict:
+    every = visibility_scenes.scenes()
+    unknown = sorted(set(names or ()) - set(every))
+    if unknown:
+        raise SystemExit(f"python -m jaxrt.bench.visibility: unknown scenes {unknown}; known: {sorted(every)}")
+    return {k: v for k, v in every.items() if not names or k in names}
+
+
+def compare(seeds: int, quick: bool, names: Sequence[str] | None = None) -> list[dict[str, Any]]:
     """Plain autodiff, edge sampling and Gaussian smoothing on every exact scene."""
     rows = []
     pixels = visibility_scenes.SIZE**2
     spp, edges = 4, 8192
     with jax.enable_x64(True):
-        for name, scene in visibility_scenes.scenes().items():
+        for name, scene in _chosen(names).items():
             reference = visibility_scenes.exact_gradient(scene)
             params = {k: jnp.asarray(v) for k, v in scene.params.items()}
             shadows = 4096 if name.startswith("shadow") else 0
@@ -111,12 +119,12 @@ def compare(seeds: int, quick: bool) -> list[dict[str, Any]]:
     return rows
 
 
-def variance(seeds: int, quick: bool) -> list[dict[str, Any]]:
+def variance(seeds: int, quick: bool, names: Sequence[str] | None = None) -> list[dict[str, Any]]:
     """Edge sampling's error and spread against samples per pixel (edge samples scaled with them)."""
     rows = []
     pixels = visibility_scenes.SIZE**2
     with jax.enable_x64(True):
-        for name, scene in visibility_scenes.scenes().items():
+        for name, scene in _chosen(names).items():
             reference = visibility_scenes.exact_gradient(scene)
             params = {k: jnp.asarray(v) for k, v in scene.params.items()}
             for spp in (1, 4) if quick else (1, 4, 16, 64):
@@ -207,6 +215,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--backend", default="auto", help="the bunny intersector's backend")
     parser.add_argument("--repeats", type=int, default=3, help="warm calls per cost measurement")
+    parser.add_argument("--scenes", help="comma-separated scenes for compare and variance (default: all)")
     parser.add_argument("--json", metavar="PATH", help="also write every number to PATH")
     return parser
 
@@ -220,13 +229,14 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             f"python -m jaxrt.bench.visibility: unknown measurement {unknown}; use compare, variance, cost"
         )
     seeds = args.seeds or (4 if args.quick else 16)
+    names = [n for n in (args.scenes or "").split(",") if n]
     size = args.size or (64 if args.quick else 512)
     print(f"jax {jax.__version__} on {jax.devices()[0].device_kind}, {platform.processor() or platform.machine()}")
     out: dict[str, Any] = {"jax": jax.__version__, "device": jax.devices()[0].device_kind}
     if "compare" in what:
-        out["compare"] = compare(seeds, args.quick)
+        out["compare"] = compare(seeds, args.quick, names)
     if "variance" in what:
-        out["variance"] = variance(seeds, args.quick)
+        out["variance"] = variance(seeds, args.quick, names)
     if "cost" in what:
         counts = [int(c) for c in str(args.edge_samples).split(",") if c]
         out["cost"] = cost(size, counts, args.backend, 1 if args.quick else args.repeats)

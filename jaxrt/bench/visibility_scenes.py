@@ -11,7 +11,8 @@ Scenes (parameters in brackets):
 - ``silhouette``: an octahedron (colour 1) against the background (0.2) [vertex offsets, translation,
   rotation];
 - ``occlusion``: an octahedron in front of a triangle whose shading varies with its barycentrics, part of
-  whose outline the octahedron hides [octahedron translation and rotation, the triangle's x, y vertices];
+  whose outline the octahedron hides [octahedron translation and rotation, the triangle's x, y vertices, a
+  translation of the camera (eye and target)];
 - ``shadow``: an octahedron above a ground plane that fills the image, lit by a directional light: its shadow
   edge on the plane is secondary visibility [vertex offsets, translation, rotation];
 - ``shadow_point``: the same lit by a point light [vertex offsets, translation, rotation, the light's
@@ -229,13 +230,14 @@ def _silhouette() -> Scene:
 
 def _occlusion() -> Scene:
     base = 0.35 * OCTAHEDRON + np.array([0.35, 0.25, 0.6])
-    camera = Camera(np.array([0.0, 0.0, 3.0]), np.zeros(3))
+    camera = base_camera = Camera(np.array([0.0, 0.0, 3.0]), np.zeros(3))
     back = np.array([[-0.9, -0.8, -0.5], [0.9, -0.4, -0.5], [0.2, 0.9, -0.5]])
     params = {
         "translation": np.array([0.0, 0.0, 0.0]),
         "rotation": np.array([0.2, -0.3, 0.5]),
         "back_xy": np.zeros((3, 2)),
         "vertices": np.zeros((6, 3)),
+        "camera": np.array([0.02, -0.03, 0.1]),  # moves the eye and the target (the view stays along -z)
     }
     intersector = rt.Intersector(rt.tags.triangle_data)
     faces = np.concatenate([OCTAHEDRON_FACES, np.array([[6, 7, 8]])])
@@ -255,9 +257,13 @@ def _occlusion() -> Scene:
             return jnp.where(hits.type != 0, value, 0.1)
 
         mesh = rt.SilhouetteMesh(v, faces)
-        return rt.pixel_integral(shade, camera.jax(), key, samples_per_pixel=spp, meshes=[mesh], edge_samples=edges)
+        moved = rt.PinholeCamera(
+            SIZE, SIZE, eye=camera.eye + p["camera"], target=camera.target + p["camera"], fov_degrees=camera.fov_degrees
+        )
+        return rt.pixel_integral(shade, moved, key, samples_per_pixel=spp, meshes=[mesh], edge_samples=edges)
 
     def exact(p):
+        camera = Camera(base_camera.eye + p["camera"], base_camera.target + p["camera"])
         b = back_vertices(p)
         front = hull(camera.project(_posed(p, base)))
         behind = _oriented(camera.project(b))
