@@ -13,7 +13,7 @@ Examples:
 from jaxrt._src import versions as _versions  # noqa: F401
 
 # isort: split
-from jaxrt import debug, intersection_functions, io, shading, tags
+from jaxrt import debug, intersection_functions, io, shading, tags, visibility
 from jaxrt._src.bvh.sah import sah_cost
 from jaxrt._src.candidate import BoundingBoxCandidate, TriangleCandidate
 from jaxrt._src.checks import BuildCheckError, build_check_errors
@@ -31,6 +31,7 @@ from jaxrt._src.intersector import Intersector, count_intersections
 from jaxrt._src.io.structure_file import load, save
 from jaxrt._src.motion import MotionSpec
 from jaxrt._src.numerics import offset_ray_origin
+from jaxrt._src.pixel_integral import pixel_integral
 from jaxrt._src.point_query import ClosestPointResult, closest_point
 from jaxrt._src.primitives.curve import CurveOptions
 from jaxrt._src.query import IntersectionQuery, intersection_query
@@ -40,6 +41,7 @@ from jaxrt._src.sharding import device_mesh, intersect_sharded, replicate
 from jaxrt._src.sizes import StructureSizes, structure_sizes
 from jaxrt._src.structures import PrimitiveAccelerationStructure, build_primitive_structure
 from jaxrt._src.topology import boundary_edge_count, is_closed
+from jaxrt._src.visibility import DirectionalLight, PinholeCamera, PointLight, SilhouetteMesh
 from jaxrt._src.winding import contains, signed_distance, winding_number
 from jaxrt._src.worlds import update_worlds, worlds_capacity
 
@@ -55,6 +57,7 @@ __all__ = [
     "CurveGeometry",
     "CurveOptions",
     "CurveType",
+    "DirectionalLight",
     "InstanceAccelerationStructure",
     "InstanceOptions",
     "Instances",
@@ -66,8 +69,11 @@ __all__ = [
     "MotionCurveGeometry",
     "MotionSpec",
     "MotionTriangleGeometry",
+    "PinholeCamera",
+    "PointLight",
     "PrimitiveAccelerationStructure",
     "Ray",
+    "SilhouetteMesh",
     "StructureSizes",
     "TriangleCandidate",
     "TriangleGeometry",
@@ -88,6 +94,7 @@ __all__ = [
     "is_closed",
     "load",
     "offset_ray_origin",
+    "pixel_integral",
     "refit",
     "replicate",
     "sah_cost",
@@ -97,6 +104,7 @@ __all__ = [
     "structure_sizes",
     "tags",
     "update_worlds",
+    "visibility",
     "winding_number",
     "worlds_capacity",
 ]

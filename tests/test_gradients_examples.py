@@ -47,8 +47,23 @@ def test_inverse_example_runs(name, argv, pictures, tmp_path):
 def test_silhouette_example_runs(tmp_path):
     pytest.importorskip("matplotlib")
     out = tmp_path / "silhouette.png"
-    result = load("silhouette_gradients").main(["--size", "24", "--out", str(out)])
+    argv = ["--size", "24", "--samples-per-pixel", "4", "--edge-samples", "1024", "--out", str(out)]
+    result = load("silhouette_gradients").main(argv)
     assert out.stat().st_size > 0
     assert result["silhouette_pixels"] > 0
     # Away from the silhouette autodiff matches finite differences; the mean brightness derivative does not.
     assert result["interior_max_abs_error_relative"] < 0.05
+    assert math.isfinite(result["pixel_integral_derivative_edge_sampling"])
+
+
+def test_shape_from_silhouette_example_runs(tmp_path):
+    pytest.importorskip("optax")
+    pytest.importorskip("matplotlib")
+    argv = ["--size", "12", "--iterations", "2", "--edge-samples", "64", "--quiet", "--out", str(tmp_path)]
+    result = load("shape_from_silhouette").main(argv)
+    for picture in ("silhouettes", "loss"):
+        assert (tmp_path / f"{picture}.png").stat().st_size > 0, picture
+    for run in ("edge_sampling", "plain_autodiff"):
+        assert all(math.isfinite(v) for v in result[run].values()), result[run]
+    # Plain autodiff has no gradient from silhouettes alone: it does not move.
+    assert result["plain_autodiff"]["centre_error"] == pytest.approx(result["start"]["centre_error"])
