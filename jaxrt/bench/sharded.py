@@ -55,6 +55,10 @@ def _run(
     n = int(rays.origin.shape[0])
     one, reference = timed(lambda: single(rays, structure), repeats)
     devices = mesh.size
+    # One device's share traced alone on one device: the speed-up cannot pass (time of all the rays) / (time of
+    # one share), and a smaller batch pays the per-call work over fewer rays.
+    share_rays = jax.tree_util.tree_map(lambda a: a[: -(-n // devices)], rays)
+    share, _ = timed(lambda: single(share_rays, structure), repeats)
     replicated = rt.replicate(structure, mesh)
     placed = n % devices == 0
     if placed:
@@ -72,6 +76,7 @@ def _run(
         "device_kinds": sorted({d.device_kind for d in jax.devices()}),
         "rays": n,
         "one_device": one.as_dict(n),
+        "one_device_share": share.as_dict(-(-n // devices)),
         "all_devices": many.as_dict(n),
         "speedup": one.median_s / many.median_s if many.median_s > 0 else float("inf"),
         "same_hits": same_ids,
@@ -80,6 +85,11 @@ def _run(
     }
     print(f"{n:,} rays in {layout} order, {devices} device(s) of {results['device_kinds']}")
     print(f"  one device: {results['one_device']['mrays_s']:.1f} Mrays/s (compile {one.compile_s:.1f} s)")
+    ceiling = one.median_s / share.median_s if share.median_s > 0 else float("inf")
+    print(
+        f"  one device, 1/{devices} of the rays: {results['one_device_share']['mrays_s']:.1f} Mrays/s "
+        f"(speed-up ceiling {ceiling:.2f}x)"
+    )
     where = "placed on the devices" if placed else "on the first device, spread per call"
     print(
         f"  {devices} devices: {results['all_devices']['mrays_s']:.1f} Mrays/s (compile {many.compile_s:.1f} s; "
