@@ -5,7 +5,7 @@ Each stage is jitted and timed alone on 2**20 rays (pipelined: 20 calls, one syn
 
 - ``kernel``: the kernel on a scene and a ray block packed beforehand;
 - ``kernel+rays``: the kernel with the ray block packed in the call (sanitised rays to the packed block);
-- ``trace``: ``traversal.gpu.trace`` (the scene's packing, where the structure holds no packed layout, the
+- ``trace``: ``pipeline.gpu_trace`` (the scene's packing, where the structure holds no packed layout, the
   rays' packing and the kernel);
 - ``scene pack`` / ``ray pack``: the packing passes alone;
 - ``fields``: the result fields from a found leaf (sanitising included), without the traversal;
@@ -38,7 +38,7 @@ from jax import lax
 import jaxrt as rt
 from jaxrt._src import fields as result_fields
 from jaxrt._src.numerics import safe_reciprocal
-from jaxrt._src.pipeline import SanitizedRays
+from jaxrt._src.pipeline import SanitizedRays, gpu_trace
 from jaxrt._src.scene_view import scene_view, traversal_scene
 from jaxrt._src.traversal import gpu, packed
 from jaxrt.bench.rays import diffuse_rays, primary_rays, shadow_rays
@@ -153,7 +153,7 @@ def profile(structure, ray: rt.Ray, any_hit: bool) -> dict[str, float]:
 
     def trace(s, r):
         z = SanitizedRays(r)
-        found = gpu.trace(s, z.origin, z.direction, z.t_min, z.t_max, z.enabled, any_hit=any_hit, cull=0)
+        found = gpu_trace(s, z.origin, z.direction, z.t_min, z.t_max, z.enabled, any_hit=any_hit, cull=0)
         return found.distance, found.leaf
 
     trace_fn = jax.jit(trace)

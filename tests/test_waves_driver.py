@@ -97,7 +97,8 @@ def trace_in_waves(intersector, structure, ray, first: int, later: int):
     """The intersector's result with the traversal in waves of the brute-force lister."""
     view = scene_view(structure)
     rays = pipeline.SanitizedRays(ray)
-    found = waves.trace_waves(intersector, view, rays, brute_force_lister(intersector, view, rays),
+    tester = leaf_tests.leaf_tester(intersector, view)
+    found = waves.trace_waves(intersector, tester, rays, brute_force_lister(intersector, view, rays),
                               candidates=first, later=later)  # fmt: skip
     return found
 

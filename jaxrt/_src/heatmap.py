@@ -18,6 +18,9 @@ from typing import Any
 
 import numpy as np
 
+from jaxrt import tags
+from jaxrt._src.intersector import Intersector
+
 __all__ = ["COLORMAPS", "colormap", "heatmap", "traversal_heatmap", "write_png", "colorbar"]
 
 # Turbo as two polynomials per channel: c(x) = v4 . (1, x, x^2, x^3) + v2 . (x^4, x^5).
@@ -82,22 +85,25 @@ def colormap(values: Any, *, vmin: float = 0.0, vmax: float | None = None, name:
 def heatmap(counts: Any, *, vmax: float | None = None, name: str = "turbo") -> np.ndarray:
     """An image of per-pixel counts (``(H, W)``) as ``(H, W, 3)`` uint8 RGB, 0 at the cold end.
 
-    Args:
-      counts: ``(H, W)`` numbers, e.g. ``result.nodes_visited`` of rays made per pixel.
-      vmax: the count shown at the hot end (``None``: the image's maximum). Fix it to compare images.
-      name: a key of :data:`COLORMAPS`.
+        Args:
+          counts: ``(H, W)`` numbers, e.g. ``result.nodes_visited`` of rays made per pixel.
+          vmax: the count shown at the hot end (``None``: the image's maximum). Fix it to compare images.
+          name: a key of :data:`COLORMAPS`.
 
-    Returns:
-      ``(H, W, 3)`` uint8.
+        Returns:
+          ``(H, W, 3)`` uint8.
 
-    Raises:
-      ValueError: ``counts`` is not two-dimensional (or see :func:`colormap`).
+        Raises:
+          ValueError: ``counts`` is not two-dimensional (or see :func:`colormap`).
 
-    Examples:
-      >>> import numpy as np
-      >>> from jaxrt import debug
-      >>> debug.heatmap(np.arange(6).reshape(2, 3)).shape
-      (2, 3, 3)
+        Examples:
+          >>> import numpy as np
+
+    from jaxrt import tags
+    from jaxrt._src.intersector import Intersector
+          >>> from jaxrt import debug
+          >>> debug.heatmap(np.arange(6).reshape(2, 3)).shape
+          (2, 3, 3)
     """
     counts = np.asarray(counts)
     if counts.ndim != 2:
@@ -134,16 +140,14 @@ def traversal_heatmap(
       ValueError: an unknown ``field``, an intersector without the ``stats`` tag, or rays that are not
         ``(H, W)``.
     """
-    import jaxrt as rt
-
     if field not in _FIELDS:
         raise ValueError(f"traversal_heatmap: field must be one of {_FIELDS}, got {field!r}")
     if intersector is None:
-        tags = [rt.tags.stats]
+        wanted = [tags.stats]
         if structure.levels:
-            tags += [rt.tags.instancing, rt.tags.max_levels(structure.levels)]
-        intersector = rt.Intersector(*tags)
-    elif rt.tags.stats not in intersector.tags:
+            wanted += [tags.instancing, tags.max_levels(structure.levels)]
+        intersector = Intersector(*wanted)
+    elif tags.stats not in intersector.tags:
         raise ValueError(f"traversal_heatmap: intersector needs the rt.tags.stats tag, it has {intersector.tags}")
     counts = np.asarray(getattr(intersector.intersect(rays, structure), field))
     if counts.ndim != 2:
