@@ -25,7 +25,8 @@ import numpy as np
 from jax import lax
 
 from jaxrt._src.instances import InstanceAccelerationStructure
-from jaxrt._src.kinds.registry import BOUNDING_BOX, CURVE, TRIANGLE
+from jaxrt._src.kinds import registry
+from jaxrt._src.kinds.registry import BOUNDING_BOX
 from jaxrt._src.point_traversal import lanes_for_backend, walk_points
 from jaxrt._src.primitives import point_triangle as geo
 from jaxrt._src.structures import PrimitiveAccelerationStructure
@@ -65,10 +66,10 @@ def check_structure(structure, name: str) -> PrimitiveAccelerationStructure:
         )
     if not isinstance(structure, PrimitiveAccelerationStructure):
         raise TypeError(f"{name}: structure must be a PrimitiveAccelerationStructure, got {type(structure).__name__}")
-    if any(CURVE.holds(g) for g in structure.geometry_info):
-        raise NotImplementedError(
-            f"{name}: curve geometry is not supported; supported kinds: {TRIANGLE.name}, {BOUNDING_BOX.name}"
-        )
+    for kind in registry.present(structure.geometry_info):
+        if kind.closest_point is None:
+            supported = ", ".join(k.name for k in registry.KINDS if k.closest_point is not None)
+            raise NotImplementedError(f"{name}: {kind.name} geometry is not supported; supported kinds: {supported}")
     return structure
 
 

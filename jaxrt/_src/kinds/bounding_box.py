@@ -13,7 +13,8 @@ array               per leaf        fill       contents
 Bounds: the box itself. Intersection: the conservative slab test (:func:`jaxrt._src.primitives.box.ray_box`)
 decides which boxes a ray enters; the hit is the geometry's intersection function's. The built-in functions
 (:mod:`jaxrt._src.primitives.analytic`) are recognised by identity and traced by the compiled traversals;
-re-intersection calls the function again, differentiably. Decisions that need JAX: user intersection
+re-intersection calls the function again, differentiably. Point queries take the solid box
+(:func:`jaxrt._src.primitives.point_triangle.closest_on_box`). Decisions that need JAX: user intersection
 functions.
 """
 
@@ -24,7 +25,7 @@ from typing import Any
 import jax
 
 from jaxrt._src.kinds.kind import Coverage, Kind, LeafArray
-from jaxrt._src.primitives import analytic, box
+from jaxrt._src.primitives import analytic, box, point_triangle
 
 __all__ = ["BOUNDING_BOX", "bounds", "builtin"]
 
@@ -74,6 +75,7 @@ BOUNDING_BOX = Kind(
     bounds=bounds,
     intersect=box.ray_box,
     reintersect=None,  # the geometry's intersection function, called again differentiably
+    closest_point=point_triangle.closest_on_box,
     tags=(),
     fields={},
     coverage={"gpu": Coverage(motion=False), "cpu": Coverage(motion=False)},

@@ -20,7 +20,7 @@ array                  per leaf         fill   contents
 
 Bounds: the Bezier hull grown by the radius (:func:`jaxrt._src.primitives.curve.segment_bounds`).
 Intersection: :func:`jaxrt._src.primitives.curve.intersect` (Newton on the segment's pieces, caps and joints);
-re-intersection: :func:`~jaxrt._src.primitives.curve.smooth_hit`. No decision needs JAX.
+re-intersection: :func:`~jaxrt._src.primitives.curve.smooth_hit`. Point queries do not take curves yet. No decision needs JAX.
 """
 
 from __future__ import annotations
@@ -42,6 +42,7 @@ CURVE = Kind(
     bounds=formulas.segment_bounds,
     intersect=formulas.intersect,
     reintersect=formulas.smooth_hit,
+    closest_point=None,  # point queries do not take curves yet
     tags=("curve_data", "normal"),
     fields={"curve_parameter": "curve_data"},
     coverage={

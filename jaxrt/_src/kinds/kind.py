@@ -77,6 +77,8 @@ class Kind:
       intersect: the exact test the traversals make (JAX, batched over leaves).
       reintersect: the differentiable test the result fields are computed from (``None``: the geometry's
         intersection function, called again by the result fields).
+      closest_point: the point-to-primitive formula of point queries (``rt.closest_point``, winding numbers),
+        ``(point, row) -> closest point``; ``None``: point queries refuse the kind.
       tags: the intersector tags whose fields the kind fills.
       fields: the result fields the kind fills, each with the tag that asks for it.
       coverage: by backend name (``"gpu"``, ``"cpu"``): what that compiled traversal traces of the kind.
@@ -99,6 +101,7 @@ class Kind:
     bounds: Callable[..., Any]
     intersect: Callable[..., Any]
     reintersect: Callable[..., Any] | None
+    closest_point: Callable[..., Any] | None
     tags: tuple[str, ...]
     fields: Mapping[str, str]
     coverage: Mapping[str, Coverage]

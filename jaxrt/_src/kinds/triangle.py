@@ -13,7 +13,8 @@ array                 per leaf        fill     contents
 Bounds: the vertices' box; a triangle without area gets an empty box (no ray enters it). Intersection: the
 watertight test of Woop, Benthin and Wald (2013), :func:`jaxrt._src.primitives.triangle.watertight`;
 re-intersection: the same test for the values, :func:`~jaxrt._src.primitives.triangle.smooth_hit`
-(Möller-Trumbore) for the gradients. Decisions that need JAX: a user filter on non-opaque geometry.
+(Möller-Trumbore) for the gradients; point queries:
+:func:`~jaxrt._src.primitives.point_triangle.closest_on_triangle`. Decisions that need JAX: a user filter on non-opaque geometry.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxrt._src.kinds.kind import Coverage, Kind, LeafArray
+from jaxrt._src.primitives import point_triangle
 from jaxrt._src.primitives import triangle as formulas
 
 __all__ = ["TRIANGLE", "bounds"]
@@ -51,6 +53,7 @@ TRIANGLE = Kind(
     bounds=bounds,
     intersect=formulas.watertight,
     reintersect=formulas.smooth_hit,
+    closest_point=point_triangle.closest_on_triangle,
     tags=("triangle_data", "normal"),
     fields={"triangle_barycentric_coord": "triangle_data", "triangle_front_facing": "triangle_data"},
     coverage={"gpu": Coverage(), "cpu": Coverage()},
