@@ -196,3 +196,10 @@ def test_no_module_compares_kinds_by_string():
                         if isinstance(v, ast.Constant) and v.value in names:
                             found.append(f"{path.relative_to(SRC)}:{node.lineno} compares with {v.value!r}")
     assert not found, "\n".join(found)
+
+
+def test_functions_decline_before_filters():
+    both = rt.Intersector(intersection_functions={1: _user_function}, filter=lambda c: True)
+    infos = (_info(TRI, opaque=False), _info(BOX))
+    assert "user intersection functions" in pipeline.kernel_declines(both, infos, "cpu")
+    assert pipeline.kernel_declines(both, infos, "gpu") is None

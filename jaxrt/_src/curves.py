@@ -556,7 +556,7 @@ def curve_leaves(geometries: tuple[Any, ...], capacity: int) -> CurveLeafArrays 
     segments = jnp.pad(segments, ((0, pad), (0, 0), (0, 0)))
     flags = jnp.pad(flags, (0, pad))
     is_curve = (flags & primitive.IS_CURVE) != 0
-    lower, upper = primitive.segment_bounds(segments)
+    lower, upper = CURVE.bounds(segments)
     return CurveLeafArrays(segments, flags, lower, upper, is_curve)
 
 

@@ -257,16 +257,18 @@ def _leaf_primitives(geometries: tuple[TriangleGeometry, ...], capacity: int):
     # A triangle whose edge vectors have an exactly zero cross product has no area: it gets an empty box, so
     # no ray tests it. (Its sheared projection could round it into a sub-ulp sliver that a ray would hit.)
     enterable = valid & triangle.has_area(triangles)
-    lower = jnp.where(enterable[:, None], jnp.min(triangles, axis=1), jnp.inf)
-    upper = jnp.where(enterable[:, None], jnp.max(triangles, axis=1), -jnp.inf)
+    triangle_lower, triangle_upper = TRIANGLE.bounds(triangles)
+    lower = jnp.where(enterable[:, None], triangle_lower, jnp.inf)
+    upper = jnp.where(enterable[:, None], triangle_upper, -jnp.inf)
     if curves is not None:  # curve segments: their Bezier hull grown by the radius
         lower = jnp.where(curves.is_curve[:, None], curves.lower, lower)
         upper = jnp.where(curves.is_curve[:, None], curves.upper, upper)
     boxes = _leaf_boxes(geometries, capacity, dtype)
     if boxes is not None:  # box primitives: their own box
         is_box = boxes[:, 0, 0] <= boxes[:, 1, 0]
-        lower = jnp.where(is_box[:, None], boxes[:, 0], lower)
-        upper = jnp.where(is_box[:, None], boxes[:, 1], upper)
+        box_lower, box_upper = BOUNDING_BOX.bounds(boxes)
+        lower = jnp.where(is_box[:, None], box_lower, lower)
+        upper = jnp.where(is_box[:, None], box_upper, upper)
     return triangles, geometry_id, primitive_id, lower, upper, valid, curves, boxes
 
 
@@ -317,14 +319,15 @@ def _code_bounds(triangles, curves, boxes) -> tuple[jax.Array, jax.Array]:
     """The boxes whose centroids give the Morton codes."""
     # Codes from the triangles' own boxes: a zero-area triangle's empty box has no centroid.
     bounds = lax.stop_gradient(triangles)
-    code_lower, code_upper = jnp.min(bounds, axis=1), jnp.max(bounds, axis=1)
+    code_lower, code_upper = TRIANGLE.bounds(bounds)
     if curves is not None:  # curve segments: the centroids of their boxes
         code_lower = jnp.where(curves.is_curve[:, None], lax.stop_gradient(curves.lower), code_lower)
         code_upper = jnp.where(curves.is_curve[:, None], lax.stop_gradient(curves.upper), code_upper)
     if boxes is not None:  # box primitives: the centroids of the boxes
         is_box = boxes[:, 0, 0] <= boxes[:, 1, 0]
-        code_lower = jnp.where(is_box[:, None], lax.stop_gradient(boxes[:, 0]), code_lower)
-        code_upper = jnp.where(is_box[:, None], lax.stop_gradient(boxes[:, 1]), code_upper)
+        box_lower, box_upper = BOUNDING_BOX.bounds(lax.stop_gradient(boxes))
+        code_lower = jnp.where(is_box[:, None], box_lower, code_lower)
+        code_upper = jnp.where(is_box[:, None], box_upper, code_upper)
     return code_lower, code_upper
 
 
@@ -398,8 +401,9 @@ def _keyframe_boxes(frame) -> tuple[jax.Array, jax.Array]:
     triangle flat at one keyframe may have area between keyframes, and the blend needs finite corners."""
     triangles, _, _, lower, upper, valid, _, _ = frame
     flat = valid & jnp.any(lower > upper, axis=-1)
-    lower = jnp.where(flat[:, None], jnp.min(triangles, axis=1), lower)
-    upper = jnp.where(flat[:, None], jnp.max(triangles, axis=1), upper)
+    triangle_lower, triangle_upper = TRIANGLE.bounds(triangles)
+    lower = jnp.where(flat[:, None], triangle_lower, lower)
+    upper = jnp.where(flat[:, None], triangle_upper, upper)
     return lower, upper
 
 

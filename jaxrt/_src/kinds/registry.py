@@ -169,13 +169,14 @@ def declines(
     in_waves = waves_cover(geometry_info, backend, motion=motion, levels=levels)
     where = _waves_where(backend)
     for k in kinds:
-        mine = _of(k, geometry_info)
-        if k.declines is not None and (reason := k.declines(intersector, mine, name)):
+        if k.declines is not None and (reason := k.declines(intersector, _of(k, geometry_info), name)):
             return reason
-        for code in (k.function_code, k.filter_code):
-            reason = None if code is None or in_waves else code(intersector, mine, name, where)
-            if reason:
-                return reason
+    if not in_waves:  # intersection functions first, then filters
+        for code in ("function_code", "filter_code"):
+            for k in kinds:
+                decide = getattr(k, code)
+                if decide is not None and (reason := decide(intersector, _of(k, geometry_info), name, where)):
+                    return reason
     if moving and not target.motion:
         return f"keyframe motion is not covered by the {name}"
     return None
