@@ -28,7 +28,7 @@ from jaxrt._src.ray import Ray
 from jaxrt._src.result import IntersectionResult
 from jaxrt._src.scene_view import SceneView, scene_view
 from jaxrt._src.traversal import cpu, drivers, gpu, waves
-from jaxrt._src.traversal.scene import TraversalResult
+from jaxrt._src.traversal.scene import TraversalRays, TraversalResult
 
 __all__ = [
     "CPU_CHUNK",
@@ -38,7 +38,7 @@ __all__ = [
     "gpu_trace",
     "INTERSECT_CHUNK",
     "REFILL_LANES",
-    "SanitizedRays",
+    "sanitized_rays",
     "enabled_rays",
     "intersect",
     "kernel_declines",
@@ -74,19 +74,20 @@ def enabled_rays(rays: Ray) -> jax.Array:
     return finite & nonzero & interval & (rays.mask != 0)
 
 
-class SanitizedRays:
-    """A ray batch with disabled rays replaced by a harmless one (origin 0, direction +z, interval [0, 0])."""
-
-    def __init__(self, rays: Ray):
-        self.enabled = enabled_rays(rays)
-        on = self.enabled
-        unit_z = jnp.array([0.0, 0.0, 1.0], rays.direction.dtype)
-        self.origin = jnp.where(on[..., None], rays.origin, 0.0)
-        self.direction = jnp.where(on[..., None], rays.direction, unit_z)
-        self.t_min = jnp.where(on, rays.min_distance, 0.0)
-        self.t_max = jnp.where(on, rays.max_distance, 0.0)
-        self.mask = rays.mask
-        self.time = jnp.where(on, rays.time, 0.0)  # read only by scenes with keyframe motion
+def sanitized_rays(rays: Ray) -> TraversalRays:
+    """The :class:`~jaxrt._src.traversal.scene.TraversalRays` of a flat ray batch: disabled rays replaced by a
+    harmless one (origin 0, direction +z, interval [0, 0])."""
+    on = enabled_rays(rays)
+    unit_z = jnp.array([0.0, 0.0, 1.0], rays.direction.dtype)
+    return TraversalRays(
+        origin=jnp.where(on[..., None], rays.origin, 0.0),
+        direction=jnp.where(on[..., None], rays.direction, unit_z),
+        t_min=jnp.where(on, rays.min_distance, 0.0),
+        t_max=jnp.where(on, rays.max_distance, 0.0),
+        enabled=on,
+        mask=rays.mask,
+        time=jnp.where(on, rays.time, 0.0),  # read only by scenes with keyframe motion
+    )
 
 
 def kernel_declines(
@@ -135,7 +136,7 @@ def _chunked(fn, args, chunk: int):
     return jax.tree_util.tree_map(lambda a: a.reshape(n, *a.shape[2:]), out)
 
 
-def _trace_portable(intersector: Any, view: SceneView, rays: SanitizedRays) -> TraversalResult:
+def _trace_portable(intersector: Any, view: SceneView, rays: TraversalRays) -> TraversalResult:
     """The portable stack traversal over chunks of rays, with the refill driver."""
     detached = lax.stop_gradient
     scene = jax.tree_util.tree_map(detached, view.traversal)
@@ -162,7 +163,7 @@ def _trace_portable(intersector: Any, view: SceneView, rays: SanitizedRays) -> T
     return _chunked(fn, args, chunk)
 
 
-def wave_lister(intersector: Any, view: SceneView, rays: SanitizedRays) -> Any:
+def wave_lister(intersector: Any, view: SceneView, rays: TraversalRays) -> Any:
     """The GPU kernel's wave for :mod:`jaxrt._src.traversal.waves`: ``(K, t_max, enabled, cursor_t,
     cursor_leaf) -> TraversalResult`` listing each ray's ``K`` first candidates past its cursor."""
     detached = lax.stop_gradient
@@ -192,7 +193,7 @@ def wave_lister(intersector: Any, view: SceneView, rays: SanitizedRays) -> Any:
     return list_candidates
 
 
-def _trace_waves(intersector: Any, view: SceneView, rays: SanitizedRays) -> TraversalResult:
+def _trace_waves(intersector: Any, view: SceneView, rays: TraversalRays) -> TraversalResult:
     """The GPU kernel in candidate waves (:mod:`jaxrt._src.traversal.waves`): user functions and filters."""
     lister = wave_lister(intersector, view, rays)
     tester = leaf_tests.leaf_tester(intersector, view)
@@ -201,7 +202,7 @@ def _trace_waves(intersector: Any, view: SceneView, rays: SanitizedRays) -> Trav
     )
 
 
-def trace(intersector: Any, view: SceneView, rays: SanitizedRays, host: Any = None) -> TraversalResult:
+def trace(intersector: Any, view: SceneView, rays: TraversalRays, host: Any = None) -> TraversalResult:
     """Run the traversal the intersector and scene call for (a compiled one where it covers them). ``host``:
     the addresses the CPU traversal may read the scene from (:func:`jaxrt._src.traversal.cpu.host_scene`)."""
     backend = resolve_backend(intersector)
@@ -253,7 +254,7 @@ def trace(intersector: Any, view: SceneView, rays: SanitizedRays, host: Any = No
 def _intersect_jit(intersector: Any, rays: Ray, structure: Any, host: Any = None) -> IntersectionResult:
     """The result for a flat, padded ray batch ``(n,)`` (inside ``jit``)."""
     view = scene_view(structure)
-    ray = SanitizedRays(rays)
+    ray = sanitized_rays(rays)
     found = trace(intersector, view, ray, host)
     if intersector.counts_all:
         return IntersectionResult({"hit_count": found.hits.total})
@@ -359,13 +360,13 @@ def cpu_kernel_arguments(structure: Any, rays: Ray, intersector: Any) -> tuple[t
     """``(params, arrays)`` for calling the compiled CPU traversal directly on host arrays (outside ``jit``), as
     the intersector's callback would for ``rays`` (a :class:`jaxrt.Ray` of shape ``(N,)``): for benchmarks."""
     view = scene_view(structure)
-    ray = SanitizedRays(rays)
+    ray = sanitized_rays(rays)
     dtype = view.traversal.node_lower.dtype
     analytic = gpu.analytic_leaves(intersector.intersection_functions, view, dtype)
     return cpu.kernel_arguments(
         view.traversal,
         view.layout,
-        (ray.origin, ray.direction, ray.t_min, ray.t_max, ray.enabled, ray.mask),
+        ray,
         any_hit=intersector.accept_any_intersection,
         cull=intersector.cull,
         max_hits=0 if intersector.counts_all else intersector.max_hits,

@@ -44,7 +44,7 @@ from jaxrt._src import leaves as leaf_tests
 from jaxrt._src.instances import InstanceAccelerationStructure
 from jaxrt._src.intersector import Intersector, _check_levels
 from jaxrt._src.kinds.registry import BOUNDING_BOX, KINDS, TRIANGLE
-from jaxrt._src.pipeline import SanitizedRays, resolve_backend, wave_lister
+from jaxrt._src.pipeline import resolve_backend, sanitized_rays, wave_lister
 from jaxrt._src.primitive_data import data_at
 from jaxrt._src.primitives import triangle
 from jaxrt._src.primitives.box import ray_box
@@ -488,7 +488,7 @@ def intersection_query(rays: Ray, structure: PrimitiveAccelerationStructure, int
             "intersection_query: structures with keyframe motion are traced with Intersector.intersect; the "
             "query does not blend keyframes at the ray's time"
         )
-    ray = SanitizedRays(rays)
+    ray = sanitized_rays(rays)
     origin, direction = ray.origin, ray.direction
     view = scene_view(structure)
     constants, state = start(

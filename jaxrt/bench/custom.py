@@ -253,7 +253,7 @@ def _wave(intersector: rt.Intersector, structure: Any, rays: rt.Ray, state: Any,
     from jaxrt._src.traversal import waves
 
     view = scene_view(structure)
-    sanitized = pipeline.SanitizedRays(rays)
+    sanitized = pipeline.sanitized_rays(rays)
     lister = pipeline.wave_lister(intersector, view, sanitized)
     loop = waves.WaveLoop(intersector, leaf_tester(intersector, view), sanitized, lister)
     return loop.wave(loop.initial() if state is None else state, k)
@@ -261,7 +261,7 @@ def _wave(intersector: rt.Intersector, structure: Any, rays: rt.Ray, state: Any,
 
 def wave_counts(intersector: rt.Intersector, structure: Any, rays: rt.Ray, first: int, later: int) -> list[int]:
     """The rays still active before each candidate wave (:mod:`jaxrt._src.traversal.waves`), wave by wave."""
-    counts = [int(jnp.sum(pipeline.SanitizedRays(rays).enabled))]
+    counts = [int(jnp.sum(pipeline.sanitized_rays(rays).enabled))]
     state = _wave(intersector, structure, rays, None, first)
     while int(jnp.sum(state.active)) and len(counts) < 64:
         counts.append(int(jnp.sum(state.active)))

@@ -47,7 +47,7 @@ except ImportError:  # pragma: no cover - depends on the jax version
     _buffer_callback = None
 from jaxrt._src.primitives import box
 from jaxrt._src.traversal import packed
-from jaxrt._src.traversal.scene import TraversalLayout, TraversalResult, TraversalScene
+from jaxrt._src.traversal.scene import TraversalLayout, TraversalRays, TraversalResult, TraversalScene
 from jaxrt._src.traversal.step import HitList
 
 __all__ = ["constants", "host_scene", "kernel_arguments", "trace_scene", "unavailable_reason"]
@@ -390,7 +390,7 @@ def _arguments(scene: TraversalScene, origin, direction, t_min, t_max, enabled, 
 def kernel_arguments(
     scene: TraversalScene,
     layout: TraversalLayout,
-    rays: tuple,
+    rays: TraversalRays,
     *,
     any_hit: bool,
     cull: int,
@@ -399,11 +399,10 @@ def kernel_arguments(
     analytic: Any = None,
 ) -> tuple[tuple[int, ...], list[np.ndarray]]:
     """``(params, arrays)`` for calling the compiled traversal directly on host arrays (outside ``jit``), as
-    :func:`trace_scene` would for ``rays`` (``origin, direction, t_min, t_max, enabled, mask``; the other
-    arguments as there): for benchmarks (:func:`jaxrt._src.pipeline.cpu_kernel_arguments`)."""
+    :func:`trace_scene` would for ``rays`` (the other arguments as there): for benchmarks (:func:`jaxrt._src.pipeline.cpu_kernel_arguments`)."""
     params = _params(layout, any_hit, cull, max_hits, count_all, analytic is not None)
     rows = None if analytic is None else analytic.rows
-    args = _arguments(scene, *rays, lambda a: a, rows)
+    args = _arguments(scene, *rays[:6], lambda a: a, rows)
     return params, [np.ascontiguousarray(a) for a in args]
 
 

@@ -208,7 +208,7 @@ def trace_waves(
     candidates: int,
     later: int,
 ) -> TraversalResult:
-    """The portable traversal's result for ``rays`` (a ``SanitizedRays``) through a primitive structure, in
+    """The portable traversal's result for ``rays`` (:class:`~jaxrt._src.traversal.scene.TraversalRays`) through a primitive structure, in
     candidate waves: the first with ``candidates`` per ray, the rest (few rays) with ``later``.
 
     Args:
