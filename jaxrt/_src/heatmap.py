@@ -85,25 +85,22 @@ def colormap(values: Any, *, vmin: float = 0.0, vmax: float | None = None, name:
 def heatmap(counts: Any, *, vmax: float | None = None, name: str = "turbo") -> np.ndarray:
     """An image of per-pixel counts (``(H, W)``) as ``(H, W, 3)`` uint8 RGB, 0 at the cold end.
 
-        Args:
-          counts: ``(H, W)`` numbers, e.g. ``result.nodes_visited`` of rays made per pixel.
-          vmax: the count shown at the hot end (``None``: the image's maximum). Fix it to compare images.
-          name: a key of :data:`COLORMAPS`.
+    Args:
+      counts: ``(H, W)`` numbers, e.g. ``result.nodes_visited`` of rays made per pixel.
+      vmax: the count shown at the hot end (``None``: the image's maximum). Fix it to compare images.
+      name: a key of :data:`COLORMAPS`.
 
-        Returns:
-          ``(H, W, 3)`` uint8.
+    Returns:
+      ``(H, W, 3)`` uint8.
 
-        Raises:
-          ValueError: ``counts`` is not two-dimensional (or see :func:`colormap`).
+    Raises:
+      ValueError: ``counts`` is not two-dimensional (or see :func:`colormap`).
 
-        Examples:
-          >>> import numpy as np
-
-    from jaxrt import tags
-    from jaxrt._src.intersector import Intersector
-          >>> from jaxrt import debug
-          >>> debug.heatmap(np.arange(6).reshape(2, 3)).shape
-          (2, 3, 3)
+    Examples:
+      >>> import numpy as np
+      >>> from jaxrt import debug
+      >>> debug.heatmap(np.arange(6).reshape(2, 3)).shape
+      (2, 3, 3)
     """
     counts = np.asarray(counts)
     if counts.ndim != 2:

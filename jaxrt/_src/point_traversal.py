@@ -19,11 +19,11 @@ from jax import lax
 __all__ = ["morton_order", "walk_points"]
 
 
+
 def lanes_for_backend(cpu_lanes: int, gpu_lanes: int = 1 << 18) -> int:
     """Lanes in flight for the default JAX backend: a small window that stays in cache on the CPU, a wide one on
     accelerators, where a step over few lanes is all launch overhead."""
     return cpu_lanes if jax.default_backend() == "cpu" else gpu_lanes
-
 
 def _spread(x: jax.Array) -> jax.Array:
     """The low 10 bits of ``x`` spread to every third bit."""
