@@ -3,12 +3,12 @@ shapes (``rt.intersection_functions.sphere``, ``disk``, ``capped_cylinder``).
 
 Leaf layout (``C`` leaf slots; ``K`` keyframes with keyframe motion):
 
-==================  ==============  =========  ===============================================================
-array               per leaf        fill       contents
-==================  ==============  =========  ===============================================================
-``leaf_box``        (2, 3) float    empty box  lower and upper corner of the box primitive
-``motion_box``      (K, 2, 3) float empty box  ``leaf_box`` at each keyframe
-==================  ==============  =========  ===============================================================
+====================  ================  =========  ==================================================================
+array                 per leaf          fill       contents
+====================  ================  =========  ==================================================================
+``leaf_box``          (2, 3) float      empty box  lower and upper corner of the box primitive
+``motion_box``        (K, 2, 3) float   empty box  ``leaf_box`` at each keyframe
+====================  ================  =========  ==================================================================
 
 Bounds: the box itself. Intersection: the conservative slab test (:func:`jaxrt._src.primitives.box.ray_box`)
 decides which boxes a ray enters; the hit is the geometry's intersection function's. The built-in functions

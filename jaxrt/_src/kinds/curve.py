@@ -6,21 +6,22 @@ takes (the intersector's static ``curve_type`` may compile one of them only).
 
 Leaf layout (``C`` leaf slots; ``K`` keyframes with keyframe motion):
 
-=====================  ===============  =====  ===========================================================
-array                  per leaf         fill   contents
-=====================  ===============  =====  ===========================================================
-``leaf_curve``         (6, 4) float     zeros  the segment packed by :func:`jaxrt._src.curves.pack_segments`:
-                                               cubic Bezier points and radii relative to the first control
-                                               point, that point, and the predecessor's joint derivative
-``leaf_curve_flags``   () int32         zeros  links to the neighbours, end caps, type (flat), and the bit
-                                               ``IS_CURVE`` marking curve leaves
-``motion_curve``       (K, 6, 4) float  zeros  ``leaf_curve`` at each keyframe (the packing is linear in the
-                                               control points, so blended packed keyframes pack the blend)
-=====================  ===============  =====  ===========================================================
+====================  ================  =========  ==================================================================
+array                 per leaf          fill       contents
+====================  ================  =========  ==================================================================
+``leaf_curve``        (6, 4) float      zeros      the segment packed by :func:`jaxrt._src.curves.pack_segments`:
+                                                   cubic Bezier points and radii relative to the first control
+                                                   point, that point, and the predecessor's joint derivative
+``leaf_curve_flags``  () int32          zeros      links to the neighbours, end caps, type (flat), and the bit
+                                                   ``IS_CURVE`` marking curve leaves
+``motion_curve``      (K, 6, 4) float   zeros      ``leaf_curve`` at each keyframe (the packing is linear in the
+                                                   control points, so blended packed keyframes pack the blend)
+====================  ================  =========  ==================================================================
 
 Bounds: the Bezier hull grown by the radius (:func:`jaxrt._src.primitives.curve.segment_bounds`).
 Intersection: :func:`jaxrt._src.primitives.curve.intersect` (Newton on the segment's pieces, caps and joints);
-re-intersection: :func:`~jaxrt._src.primitives.curve.smooth_hit`. Point queries do not take curves yet. No decision needs JAX.
+re-intersection: :func:`~jaxrt._src.primitives.curve.smooth_hit`. Point queries do not take curves yet. No
+decision needs JAX.
 """
 
 from __future__ import annotations

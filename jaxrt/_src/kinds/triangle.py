@@ -2,19 +2,20 @@
 
 Leaf layout (``C`` leaf slots; ``K`` keyframes with keyframe motion):
 
-====================  ==============  =======  ===================================================================
-array                 per leaf        fill     contents
-====================  ==============  =======  ===================================================================
-``leaf_triangle``     (3, 3) float    zeros    the three vertices in object space; every kind's leaves have this
-                                               row (the traversal contract reads it), zeros for other kinds
-``motion_triangle``   (K, 3, 3) float  zeros   ``leaf_triangle`` at each keyframe (keyframe 0 is the static row)
-====================  ==============  =======  ===================================================================
+====================  ================  =========  ==================================================================
+array                 per leaf          fill       contents
+====================  ================  =========  ==================================================================
+``leaf_triangle``     (3, 3) float      zeros      the three vertices in object space; every kind's leaves have this
+                                                   row (the traversal contract reads it), zeros for other kinds
+``motion_triangle``   (K, 3, 3) float   zeros      ``leaf_triangle`` at each keyframe (keyframe 0 is the static row)
+====================  ================  =========  ==================================================================
 
 Bounds: the vertices' box; a triangle without area gets an empty box (no ray enters it). Intersection: the
 watertight test of Woop, Benthin and Wald (2013), :func:`jaxrt._src.primitives.triangle.watertight`;
 re-intersection: the same test for the values, :func:`~jaxrt._src.primitives.triangle.smooth_hit`
 (Möller-Trumbore) for the gradients; point queries:
-:func:`~jaxrt._src.primitives.point_triangle.closest_on_triangle`. Decisions that need JAX: a user filter on non-opaque geometry.
+:func:`~jaxrt._src.primitives.point_triangle.closest_on_triangle`. Decisions that need JAX: a user filter on
+non-opaque geometry.
 """
 
 from __future__ import annotations

@@ -399,7 +399,8 @@ def kernel_arguments(
     analytic: Any = None,
 ) -> tuple[tuple[int, ...], list[np.ndarray]]:
     """``(params, arrays)`` for calling the compiled traversal directly on host arrays (outside ``jit``), as
-    :func:`trace_scene` would for ``rays`` (the other arguments as there): for benchmarks (:func:`jaxrt._src.pipeline.cpu_kernel_arguments`)."""
+    :func:`trace_scene` would for ``rays`` (the other arguments as there): for benchmarks
+    (:func:`jaxrt._src.pipeline.cpu_kernel_arguments`)."""
     params = _params(layout, any_hit, cull, max_hits, count_all, analytic is not None)
     rows = None if analytic is None else analytic.rows
     args = _arguments(scene, *rays[:6], lambda a: a, rows)
