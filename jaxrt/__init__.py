@@ -14,7 +14,6 @@ from jaxrt._src import versions as _versions  # noqa: F401
 
 # isort: split
 from jaxrt import debug, intersection_functions, io, shading, tags, visibility
-from jaxrt._src.bvh.sah import sah_cost
 from jaxrt._src.candidate import BoundingBoxCandidate, TriangleCandidate
 from jaxrt._src.checks import BuildCheckError, build_check_errors
 from jaxrt._src.compaction import compact
@@ -25,7 +24,6 @@ from jaxrt._src.instances import (
     InstanceOptions,
     Instances,
     build_instance_structure,
-    refit,
 )
 from jaxrt._src.intersector import Intersector, count_intersections
 from jaxrt._src.io.structure_file import load, save
@@ -33,19 +31,20 @@ from jaxrt._src.motion import MotionSpec
 from jaxrt._src.numerics import offset_ray_origin
 from jaxrt._src.pixel_integral import pixel_integral
 from jaxrt._src.point_query import ClosestPointResult, closest_point
+from jaxrt._src.prepacked import build_primitive_structure, refit
 from jaxrt._src.primitives.curve import CurveOptions
 from jaxrt._src.query import IntersectionQuery, intersection_query
 from jaxrt._src.ray import Ray
 from jaxrt._src.result import IntersectionResult, IntersectionType
 from jaxrt._src.sharding import device_mesh, intersect_sharded, replicate
-from jaxrt._src.sizes import StructureSizes, structure_sizes
-from jaxrt._src.structures import PrimitiveAccelerationStructure, build_primitive_structure
+from jaxrt._src.sizes import StructureSizes, sah_cost, structure_sizes
+from jaxrt._src.structures import PrimitiveAccelerationStructure
 from jaxrt._src.topology import boundary_edge_count, is_closed
 from jaxrt._src.visibility import DirectionalLight, PinholeCamera, PointLight, SilhouetteMesh
 from jaxrt._src.winding import contains, signed_distance, winding_number
 from jaxrt._src.worlds import update_worlds, worlds_capacity
 
-__version__ = "0.1.0"
+__version__ = _versions.VERSION
 
 __all__ = [
     "BoundingBoxCandidate",

@@ -5,7 +5,7 @@ Each stage is jitted and timed alone on 2**20 rays (pipelined: 20 calls, one syn
 
 - ``kernel``: the kernel on a scene and a ray block packed beforehand;
 - ``kernel+rays``: the kernel with the ray block packed in the call (sanitised rays to the packed block);
-- ``trace``: ``traversal.gpu.trace`` (the scene's packing, where the structure holds no packed layout, the
+- ``trace``: ``pipeline.gpu_trace`` (the scene's packing, where the structure holds no packed layout, the
   rays' packing and the kernel);
 - ``scene pack`` / ``ray pack``: the packing passes alone;
 - ``fields``: the result fields from a found leaf (sanitising included), without the traversal;
@@ -38,7 +38,7 @@ from jax import lax
 import jaxrt as rt
 from jaxrt._src import fields as result_fields
 from jaxrt._src.numerics import safe_reciprocal
-from jaxrt._src.pipeline import SanitizedRays
+from jaxrt._src.pipeline import gpu_trace, sanitized_rays
 from jaxrt._src.scene_view import scene_view, traversal_scene
 from jaxrt._src.traversal import gpu, packed
 from jaxrt.bench.rays import diffuse_rays, primary_rays, shadow_rays
@@ -141,7 +141,7 @@ def profile(structure, ray: rt.Ray, any_hit: bool) -> dict[str, float]:
         return nodes, triangles, instances
 
     def pack_ray(r):
-        s = SanitizedRays(r)
+        s = sanitized_rays(r)
         return packed.pack_rays(s.origin, s.direction, s.t_min, s.t_max, s.enabled, size)
 
     scene_fn = jax.jit(pack_scene)
@@ -152,8 +152,8 @@ def profile(structure, ray: rt.Ray, any_hit: bool) -> dict[str, float]:
     launch_rays = jax.jit(lambda nd, tr, ins, r: gpu._launch(gpu.kernel_call(nd, tr, ins, pack_ray(r), config))[:2])
 
     def trace(s, r):
-        z = SanitizedRays(r)
-        found = gpu.trace(s, z.origin, z.direction, z.t_min, z.t_max, z.enabled, any_hit=any_hit, cull=0)
+        z = sanitized_rays(r)
+        found = gpu_trace(s, z.origin, z.direction, z.t_min, z.t_max, z.enabled, any_hit=any_hit, cull=0)
         return found.distance, found.leaf
 
     trace_fn = jax.jit(trace)
@@ -161,7 +161,7 @@ def profile(structure, ray: rt.Ray, any_hit: bool) -> dict[str, float]:
     intersector = rt.Intersector(backend="gpu", accept_any_intersection=any_hit)
 
     def fields(s, r, leaf, distance):
-        z = SanitizedRays(r)
+        z = sanitized_rays(r)
         view = scene_view(s)
         chain = jnp.zeros((leaf.shape[0], 0), jnp.int32)
         return result_fields.hit_fields(
@@ -182,7 +182,7 @@ def profile(structure, ray: rt.Ray, any_hit: bool) -> dict[str, float]:
     out["intersect, eager"] = _timed(lambda: intersector.intersect(ray, structure))
 
     def pack_soa(r):
-        s = SanitizedRays(r)
+        s = sanitized_rays(r)
         return pack_rays_soa(s.origin, s.direction, s.t_min, s.t_max, s.enabled, size)
 
     launch_soa = jax.jit(lambda nd, tr, ins, r: gpu._launch(gpu.kernel_call(nd, tr, ins, pack_soa(r), config))[:2])

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 import jaxrt as rt
-from jaxrt._src import structures
+from jaxrt._src import prepacked
 from jaxrt._src.scene_view import traversal_scene
 from jaxrt._src.traversal import gpu, packed
 
@@ -107,7 +107,7 @@ def test_load_packs_where_a_build_would(tmp_path, monkeypatch, wanted):
     structure = _build(kernel_layout=True)
     path = tmp_path / "s.jaxrt"
     rt.save(path, structure)
-    monkeypatch.setattr(structures, "kernel_layout_wanted", lambda info, dtype: wanted)
+    monkeypatch.setattr(prepacked, "kernel_layout_wanted", lambda info, dtype: wanted)
     loaded = rt.load(path)
     if wanted:
         _assert_layout_matches(loaded)

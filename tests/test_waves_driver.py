@@ -96,15 +96,16 @@ def brute_force_lister(intersector, view, rays):
 def trace_in_waves(intersector, structure, ray, first: int, later: int):
     """The intersector's result with the traversal in waves of the brute-force lister."""
     view = scene_view(structure)
-    rays = pipeline.SanitizedRays(ray)
-    found = waves.trace_waves(intersector, view, rays, brute_force_lister(intersector, view, rays),
+    rays = pipeline.sanitized_rays(ray)
+    tester = leaf_tests.leaf_tester(intersector, view)
+    found = waves.trace_waves(intersector, tester, rays, brute_force_lister(intersector, view, rays),
                               candidates=first, later=later)  # fmt: skip
     return found
 
 
 def _portable(intersector, structure, ray):
     view = scene_view(structure)
-    return jax.jit(lambda r: pipeline._trace_portable(intersector, view, pipeline.SanitizedRays(r)))(ray)
+    return jax.jit(lambda r: pipeline._trace_portable(intersector, view, pipeline.sanitized_rays(r)))(ray)
 
 
 def _intersector(**kw):
@@ -116,7 +117,7 @@ def _as_result(found, intersector, structure, ray):
     from jaxrt._src import fields as result_fields
 
     view = scene_view(structure)
-    rays = pipeline.SanitizedRays(ray)
+    rays = pipeline.sanitized_rays(ray)
     geometry = (rays.origin, rays.direction, rays.t_min, rays.t_max)
     fields = result_fields.hit_fields(intersector, view, *geometry, found.leaf, found.distance, found.instances)
     return rt.IntersectionResult(fields)

@@ -37,6 +37,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.experimental import io_callback
 
+from jaxrt._src.kinds.registry import BOUNDING_BOX, CURVE, TRIANGLE
+
 
 class BuildCheckError(ValueError):
     """A build's input breaks a rule that its constructor could not check on traced arrays.
@@ -161,7 +163,7 @@ def geometry_rules(geometries: Sequence[Any], owner: str) -> list[_Rule]:
     rules = []
     for g, geometry in enumerate(geometries):
         name = f"{owner}: geometries[{g}] ({type(geometry).__name__})"
-        if geometry.kind == "triangle":
+        if TRIANGLE.holds(geometry):
             vertices, indices = geometry.vertices, geometry.indices
             count = vertices.shape[0]
             rules.append(_Rule(name + " vertices[{index}] = {value} is not finite", _not_finite(vertices), vertices))
@@ -169,7 +171,7 @@ def geometry_rules(geometries: Sequence[Any], owner: str) -> list[_Rule]:
             rules.append(
                 _Rule(name + f" indices[{{index}}] = {{value}} is out of range for {count} vertices", out, indices)
             )
-        elif geometry.kind == "curve":
+        elif CURVE.holds(geometry):
             points, radii, first = geometry.control_points, geometry.radii, geometry.indices
             count = points.shape[0]
             rules.append(_Rule(name + " control_points[{index}] = {value} is not finite", _not_finite(points), points))
@@ -185,7 +187,7 @@ def geometry_rules(geometries: Sequence[Any], owner: str) -> list[_Rule]:
                     first,
                 )
             )
-        elif geometry.kind == "bounding_box":
+        elif BOUNDING_BOX.holds(geometry):
             box = jnp.stack([geometry.lower, geometry.upper], axis=1)
             rules.append(_Rule(name + " box {index} (lower, upper) = {value} is not finite", _not_finite(box), box))
             inverted = jnp.any(geometry.lower > geometry.upper, axis=-1)

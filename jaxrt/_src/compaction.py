@@ -30,7 +30,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrt._src.instances import InstanceAccelerationStructure
-from jaxrt._src.structures import PrimitiveAccelerationStructure, with_kernel_layout
+from jaxrt._src.prepacked import with_kernel_layout
+from jaxrt._src.structures import PrimitiveAccelerationStructure
 
 __all__ = ["compact", "compact_capacity"]
 

@@ -36,7 +36,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrt._src.geometry import _as_float_array, _check_finite, _check_primitive_data, _gather_rows, _is_concrete
+from jaxrt._src.geometry import (
+    _as_float_array,
+    _check_finite,
+    _check_primitive_data,
+    _gather_rows,
+    _is_concrete,
+    keyframe_error,
+    keyframe_stack,
+)
+from jaxrt._src.kinds.curve import CURVE
+from jaxrt._src.primitives import curve as primitive
 
 __all__ = [
     "MotionCurveGeometry",
@@ -231,7 +241,7 @@ class CurveGeometry:
       (2, <CurveBasis.CATMULL_ROM: 'catmull_rom'>)
     """
 
-    kind = "curve"
+    kind = CURVE.name
 
     def __init__(
         self,
@@ -379,7 +389,7 @@ class MotionCurveGeometry:
       (2, 1)
     """
 
-    kind = "curve"
+    kind = CURVE.name
     motion = True
 
     def __init__(
@@ -395,8 +405,6 @@ class MotionCurveGeometry:
         primitive_data: Any = None,
         opaque: bool = True,
     ):
-        from jaxrt._src.geometry import keyframe_error, keyframe_stack
-
         owner = "MotionCurveGeometry"
         points = keyframe_stack(control_points, "control_points", owner, (-1, 3))
         radii = keyframe_stack(radii, "radii", owner, (-1,))
@@ -507,8 +515,6 @@ def pack_segments(geometry: CurveGeometry) -> tuple[jax.Array, jax.Array]:
     predecessor at the joint (:func:`segment_links`). ``flags`` holds the links, the end caps and the type
     (:func:`jaxrt._src.primitives.curve.pack_flags`). Differentiable with respect to points and radii.
     """
-    from jaxrt._src.primitives import curve as primitive
-
     window = geometry.segment_control_points()
     base = window[:, 0, :3]
     relative = window - jnp.concatenate([base, jnp.zeros_like(base[:, :1])], axis=-1)[:, None, :]
@@ -541,8 +547,6 @@ def curve_leaves(geometries: tuple[Any, ...], capacity: int) -> CurveLeafArrays 
 
     Triangle geometries take zero rows, so that row ``i`` is the ``i``-th primitive over all geometries.
     """
-    from jaxrt._src.primitives import curve as primitive
-
     if not any(isinstance(g, CurveGeometry) for g in geometries):
         return None
     dtype = next(g.control_points.dtype for g in geometries if isinstance(g, CurveGeometry))
@@ -564,7 +568,7 @@ def curve_leaves(geometries: tuple[Any, ...], capacity: int) -> CurveLeafArrays 
     flags = jnp.pad(flags, (0, pad))
     in_range = jnp.pad(jnp.concatenate(in_range), (0, pad), constant_values=True)
     is_curve = (flags & primitive.IS_CURVE) != 0
-    lower, upper = primitive.segment_bounds(segments)
+    lower, upper = CURVE.bounds(segments)
     # segments with indices out of range: an empty box, so no ray enters them
     lower = jnp.where(in_range[:, None], lower, jnp.inf)
     upper = jnp.where(in_range[:, None], upper, -jnp.inf)
@@ -577,8 +581,6 @@ def curve_configuration(infos: tuple[CurveInfo, ...], curve_type: CurveType | No
     Only the types and caps present are compiled; linear-only structures use one exact round cone per segment
     (one piece, no iteration) unless ``options`` is given.
     """
-    from jaxrt._src.primitives import curve as primitive
-
     types = {i.curve_type for i in infos} if curve_type is None else {curve_type}
     curve_types = tuple(sorted(primitive.FLAT if t == CurveType.FLAT else primitive.ROUND for t in types))
     code = {CurveEndCaps.NONE: primitive.CAP_NONE, CurveEndCaps.DISK: primitive.CAP_DISK}
@@ -599,14 +601,10 @@ class CurveLeaves:
         self.config = dict(curve_types=curve_types, end_caps=end_caps, options=options)
 
     def prepare(self, origin, direction, facing=None):
-        from jaxrt._src.primitives import curve as primitive
-
         del facing  # culling applies to triangles only
         return primitive.curve_ray(origin, direction)
 
     def __call__(self, context, leaves, t_min, t_max):
-        from jaxrt._src.primitives import curve as primitive
-
         index = jnp.maximum(leaves, 0)
         test = lambda segment, flags: primitive.intersect(context, segment, flags, t_min, t_max, **self.config)  # noqa: E731
         hit = jax.vmap(test)(self.leaf_curve[index], self.leaf_flags[index])
@@ -623,8 +621,6 @@ def curve_hit_fields(leaf_curve, leaf_curve_flags, leaf, hit, origin, direction,
     to its root and attaches derivatives with respect to the segment's control points and radii and to the
     ray.
     """
-    from jaxrt._src.primitives import curve as primitive
-
     stop = jax.lax.stop_gradient
     flags = leaf_curve_flags[leaf]
     is_curve = hit & ((flags & primitive.IS_CURVE) != 0)

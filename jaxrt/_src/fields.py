@@ -18,13 +18,16 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from jaxrt._src import curves as curve_support
 from jaxrt._src import leaves as leaf_tests
 from jaxrt._src import normals as hit_normals
-from jaxrt._src.instances import apply_transform, compose_transforms, instance_motion_at, invert_transform
+from jaxrt._src.kinds.registry import BOUNDING_BOX, CURVE
 from jaxrt._src.primitive_data import data_at
+from jaxrt._src.primitives import curve as primitive
 from jaxrt._src.primitives import triangle
 from jaxrt._src.result import IntersectionType
 from jaxrt._src.scene_view import SceneView
+from jaxrt._src.transforms import apply_transform, compose_transforms, instance_motion_at, invert_transform
 
 __all__ = ["NO_USER_ID", "hit_fields"]
 
@@ -174,8 +177,6 @@ def hit_fields(
     """The hit fields of rays ``(n,)`` whose traversal found ``leaf`` (``-1``: a miss) at ``distance`` through
     the instance ``chain`` ``(n, levels)``; ``time`` ``(n,)`` with keyframe motion: moving primitives are
     re-intersected as blended at each ray's time (differentiable in the keyframes and the time)."""
-    from jaxrt._src import curves as curve_support
-
     if time is not None and view.leaves.motion is not None:
         view = view.at(view.keyframe_position(time))
 
@@ -191,7 +192,7 @@ def hit_fields(
     hit = found  # triangle hits, once the other kinds are taken out
     kind = jnp.full(found.shape, int(IntersectionType.NONE), jnp.int32)
     exact_distance = jnp.full(found.shape, jnp.inf, dtype)
-    if "curve" in kinds:  # curve hits: re-tested (in object space) differentiably
+    if CURVE.name in kinds:  # curve hits: re-tested (in object space) differentiably
         config = leaf_tests.curve_configuration(intersector, view)
         is_curve, curve_t, curve_u, curve_part = curve_support.curve_hit_fields(
             leaves.curve, leaves.curve_flags, leaf, hit, object_origin, object_direction, t_min, t_max, distance, config
@@ -199,7 +200,7 @@ def hit_fields(
         hit = hit & ~is_curve
         kind = jnp.where(is_curve, int(IntersectionType.CURVE), kind)
         exact_distance = jnp.where(is_curve, curve_t, exact_distance)
-    if "bounding_box" in kinds:
+    if BOUNDING_BOX.name in kinds:
         is_box = found & view.leaf_flag(view.slot_table(leaf_tests.box_slots(view)), leaf)
         box_t = _box_distance(intersector, view, leaf, is_box, object_origin, object_direction, t_min, t_max, distance)
         hit = hit & ~is_box
@@ -241,7 +242,9 @@ def hit_fields(
         front = clockwise if intersector.front_facing_winding == "clockwise" else ~clockwise
         fields["triangle_front_facing"] = hit & front
     if intersector.has("curve_data"):
-        fields["curve_parameter"] = jnp.where(is_curve, curve_u, 0.0) if "curve" in kinds else jnp.zeros_like(distance)
+        fields["curve_parameter"] = (
+            jnp.where(is_curve, curve_u, 0.0) if CURVE.name in kinds else jnp.zeros_like(distance)
+        )
     if intersector.has("primitive_data"):
         fields["primitive_data"] = data_at(leaves.primitive_data, leaf, found)
     if intersector.has("instancing"):
@@ -250,7 +253,7 @@ def hit_fields(
         # Triangles: the object-space face normal of the (differentiable) vertices; dummy ones elsewhere.
         object_vertices = jnp.where(hit[:, None, None], vertices, dummy)
         normal = jnp.where(hit[:, None], hit_normals.triangle_normal(object_vertices), 0.0)
-        if "curve" in kinds:
+        if CURVE.name in kinds:
             curve_normal = _curve_normals(
                 view, leaf, is_curve, curve_part, curve_u, curve_t, object_origin, object_direction
             )
@@ -264,8 +267,6 @@ def hit_fields(
 def _curve_normals(view, leaf, is_curve, part, u, t, origin, direction):
     """Object-space normals of curve hits (zeros elsewhere): evaluated on the hit segment at the hit's
     differentiable ``(distance, u)``, with dummy values in the other lanes (no NaN in their gradients)."""
-    from jaxrt._src.primitives import curve as primitive
-
     segment = view.leaves.curve[leaf]
     dummy = jnp.zeros((6, 4), segment.dtype).at[:4, 0].set(jnp.array([0.0, 1 / 3, 2 / 3, 1.0])).at[:4, 3].set(0.5)
     segment = jnp.where(is_curve[:, None, None], segment, dummy)

@@ -13,6 +13,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxrt._src.kinds.bounding_box import BOUNDING_BOX
+from jaxrt._src.kinds.triangle import TRIANGLE
+
 __all__ = [
     "BoundingBoxGeometry",
     "MotionBoundingBoxGeometry",
@@ -96,7 +99,7 @@ class TriangleGeometry:
       1
     """
 
-    kind = "triangle"
+    kind = TRIANGLE.name
 
     def __init__(self, vertices: Any, indices: Any = None, *, primitive_data: Any = None, opaque: bool = True):
         owner = "TriangleGeometry"
@@ -193,7 +196,7 @@ class BoundingBoxGeometry:
       1
     """
 
-    kind = "bounding_box"
+    kind = BOUNDING_BOX.name
 
     def __init__(self, lower: Any, upper: Any, *, primitive_data: Any = None, opaque: bool = True):
         owner = "BoundingBoxGeometry"
@@ -310,7 +313,7 @@ class MotionTriangleGeometry:
       (2, 1)
     """
 
-    kind = "triangle"
+    kind = TRIANGLE.name
     motion = True
 
     def __init__(self, vertices: Any, indices: Any = None, *, primitive_data: Any = None, opaque: bool = True):
@@ -378,7 +381,7 @@ class MotionBoundingBoxGeometry:
       (2, 1)
     """
 
-    kind = "bounding_box"
+    kind = BOUNDING_BOX.name
     motion = True
 
     def __init__(self, lower: Any, upper: Any, *, primitive_data: Any = None, opaque: bool = True):

@@ -18,6 +18,9 @@ from typing import Any
 
 import numpy as np
 
+from jaxrt import tags
+from jaxrt._src.intersector import Intersector
+
 __all__ = ["COLORMAPS", "colormap", "heatmap", "traversal_heatmap", "write_png", "colorbar"]
 
 # Turbo as two polynomials per channel: c(x) = v4 . (1, x, x^2, x^3) + v2 . (x^4, x^5).
@@ -134,16 +137,14 @@ def traversal_heatmap(
       ValueError: an unknown ``field``, an intersector without the ``stats`` tag, or rays that are not
         ``(H, W)``.
     """
-    import jaxrt as rt
-
     if field not in _FIELDS:
         raise ValueError(f"traversal_heatmap: field must be one of {_FIELDS}, got {field!r}")
     if intersector is None:
-        tags = [rt.tags.stats]
+        wanted = [tags.stats]
         if structure.levels:
-            tags += [rt.tags.instancing, rt.tags.max_levels(structure.levels)]
-        intersector = rt.Intersector(*tags)
-    elif rt.tags.stats not in intersector.tags:
+            wanted += [tags.instancing, tags.max_levels(structure.levels)]
+        intersector = Intersector(*wanted)
+    elif tags.stats not in intersector.tags:
         raise ValueError(f"traversal_heatmap: intersector needs the rt.tags.stats tag, it has {intersector.tags}")
     counts = np.asarray(getattr(intersector.intersect(rays, structure), field))
     if counts.ndim != 2:

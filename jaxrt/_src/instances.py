@@ -48,10 +48,12 @@ from jax import lax
 from jaxrt._src.bvh.boxes import child_boxes, range_boxes
 from jaxrt._src.bvh.morton import morton_codes
 from jaxrt._src.bvh.radix_tree import build_radix_tree, tree_depth_bound
+from jaxrt._src.checks import check_instances
 from jaxrt._src.geometry import float_dtype
 from jaxrt._src.motion import MotionSpec
-from jaxrt._src.numerics import full_precision, gamma
-from jaxrt._src.structures import PrimitiveAccelerationStructure, capacity_bucket, refit_primitives
+from jaxrt._src.numerics import full_precision
+from jaxrt._src.structures import PrimitiveAccelerationStructure, capacity_bucket
+from jaxrt._src.transforms import SINGULAR_TOLERANCE, InstanceMotion, invert_transform, transform_boxes
 
 __all__ = [
     "InstanceOptions",
@@ -59,18 +61,10 @@ __all__ = [
     "InstanceTable",
     "InstanceAccelerationStructure",
     "build_instance_structure",
-    "refit",
     "refit_instances",
     "SceneArrays",
     "scene_arrays",
-    "invert_transform",
-    "compose_transforms",
-    "apply_transform",
 ]
-
-#: Smallest relative determinant ``|det A| / (|a0| |a1| |a2|)`` (columns ``a_i`` of the linear part) of an
-#: accepted transform. Below it the float32 inverse loses most of its digits and object-space rays go wrong.
-SINGULAR_TOLERANCE = 1e-6
 
 
 class InstanceOptions(enum.IntFlag):
@@ -253,60 +247,6 @@ class Instances:
 
     def __repr__(self) -> str:
         return f"Instances(count={self.count})"
-
-
-# --- affine transforms ----------------------------------------------------------------------------------------
-
-
-@full_precision
-def invert_transform(transform: jax.Array) -> jax.Array:
-    """Inverse of ``(..., 3, 4)`` affine transforms (adjugate over determinant; differentiable)."""
-    a = transform[..., :3]
-    t = transform[..., 3]
-    c0 = jnp.cross(a[..., 1, :], a[..., 2, :])
-    c1 = jnp.cross(a[..., 2, :], a[..., 0, :])
-    c2 = jnp.cross(a[..., 0, :], a[..., 1, :])
-    det = jnp.sum(a[..., 0, :] * c0, axis=-1)
-    det = jnp.where(det == 0, 1.0, det)
-    inverse = jnp.stack([c0, c1, c2], axis=-1) / det[..., None, None]
-    return jnp.concatenate([inverse, -jnp.einsum("...ij,...j->...i", inverse, t)[..., None]], axis=-1)
-
-
-@full_precision
-def compose_transforms(outer: jax.Array, inner: jax.Array) -> jax.Array:
-    """``outer o inner`` for ``(..., 3, 4)`` affine transforms (apply ``inner`` first)."""
-    linear = jnp.einsum("...ij,...jk->...ik", outer[..., :3], inner[..., :3])
-    translation = jnp.einsum("...ij,...j->...i", outer[..., :3], inner[..., 3]) + outer[..., 3]
-    return jnp.concatenate([linear, translation[..., None]], axis=-1)
-
-
-@full_precision
-def apply_transform(transform: jax.Array, point: jax.Array, *, vector: bool = False) -> jax.Array:
-    """``transform`` ``(3, 4)`` applied to ``(..., 3)`` points (or, with ``vector``, directions)."""
-    out = jnp.einsum("ij,...j->...i", transform[:, :3], point)
-    return out if vector else out + transform[:, 3]
-
-
-@full_precision
-def _transform_boxes(transform: jax.Array, lower: jax.Array, upper: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """World boxes ``(N, 3)`` around the transformed corners of object boxes ``(N, B, 3)``, padded outwards.
-
-    Each instance's box bounds the eight transformed corners of each of its ``B`` object boxes (empty ones
-    skipped). The pad (a few float32 roundings of the largest coordinate magnitude) keeps the box conservative
-    for the rounding of the corner transform here and of the ray transform in the traversal. An instance
-    whose boxes are all empty stays empty.
-    """
-    bits = jnp.array([[(k >> i) & 1 for i in range(3)] for k in range(8)], bool)  # (8, 3)
-    corners = jnp.where(bits[None, None], upper[:, :, None, :], lower[:, :, None, :])  # (N, B, 8, 3)
-    world = jnp.einsum("nij,nbkj->nbki", transform[:, :, :3], corners) + transform[:, None, None, :, 3]
-    empty = jnp.any(lower > upper, axis=-1)[:, :, None, None]  # (N, B, 1, 1)
-    lo = jnp.min(jnp.where(empty, jnp.inf, world), axis=(1, 2))
-    hi = jnp.max(jnp.where(empty, -jnp.inf, world), axis=(1, 2))
-    finite = jnp.where(empty, 0.0, jnp.abs(world))
-    magnitude = jnp.maximum(jnp.max(finite, axis=(1, 2)), jnp.sum(jnp.abs(transform[:, :, 3:]), axis=-1))
-    pad = magnitude * gamma(8)
-    none = jnp.all(empty, axis=(1, 2, 3))[:, None]
-    return jnp.where(none, jnp.inf, lo - pad), jnp.where(none, -jnp.inf, hi + pad)
 
 
 # --- structures -------------------------------------------------------------------------------------------------
@@ -515,7 +455,7 @@ def _build_table(
     index = jnp.clip(structure_index, 0, structures - 1)
     keys = transform if transform.ndim == 4 else transform[:, None]
     boxes = [
-        _transform_boxes(lax.stop_gradient(keys[:, k]), child_lower[index], child_upper[index])
+        transform_boxes(lax.stop_gradient(keys[:, k]), child_lower[index], child_upper[index])
         for k in range(keys.shape[1])
     ]
     lower = functools.reduce(jnp.minimum, [b[0] for b in boxes])
@@ -685,8 +625,6 @@ def build_instance_structure(
     n = instances.count
     count = _count(count, n)
     if checks:
-        from jaxrt._src.checks import check_instances
-
         for k in range(instances.keyframe_count):
             check_instances(instances.keyframe(k), len(structures), count, SINGULAR_TOLERANCE, owner)
 
@@ -713,18 +651,6 @@ def build_instance_structure(
         instance_tables=(*merger.tables, table),
         children=children,
     )
-
-
-def refit(structure: Any, geometries_or_instances: Any) -> Any:
-    """Recompute the boxes of ``structure`` for moved geometry, keeping its topology (Metal's refit).
-
-    A primitive structure is refit with geometries of the same kinds and primitive counts as those it was
-    built from; tree quality degrades as primitives move far from where they were built (rebuild then). An
-    instance structure is refit with new :class:`~jaxrt.Instances` (same slot count; its children are kept).
-    """
-    if isinstance(structure, InstanceAccelerationStructure):
-        return refit_instances(structure, geometries_or_instances)
-    return refit_primitives(structure, geometries_or_instances)
 
 
 def refit_instances(structure: InstanceAccelerationStructure, instances: Instances, *, count: Any = None):
@@ -793,34 +719,6 @@ class SceneArrays(NamedTuple):
     leaf_curve: jax.Array | None = None  # (LT, 6, 4) packed object-space segments, or None without curves
     leaf_curve_flags: jax.Array | None = None  # (LT,) int32
     motion: InstanceMotion | None = None  # keyframed transforms, with instance motion only
-
-
-class InstanceMotion(NamedTuple):
-    """Keyframed object-to-world transforms of every global instance (static instances repeat theirs)."""
-
-    keys: jax.Array  # (G, K, 3, 4), K the largest keyframe count; shorter tables repeat their last keyframe
-    count: jax.Array  # (G,) int32 keyframes of the instance's table (2 for static tables)
-    start: jax.Array  # (G,) float
-    end: jax.Array  # (G,) float
-    vanish_start: jax.Array  # (G,) bool
-    vanish_end: jax.Array  # (G,) bool
-    moving: jax.Array  # (G,) bool: the instance's table has motion
-
-
-def instance_motion_at(motion: InstanceMotion, g: jax.Array, time: jax.Array):
-    """``(to_world, to_object, visible, moving)`` of global instances ``g`` at ``time`` (broadcast together):
-    the component-wise blend of the two neighbouring keyframe transforms, its inverse, whether the instance
-    exists at that time (a ``"vanish"`` border), and whether it moves at all."""
-    from jaxrt._src.motion import blend, keyframe_position
-
-    position = keyframe_position(
-        time, motion.count[g], motion.start[g], motion.end[g], motion.vanish_start[g], motion.vanish_end[g]
-    )
-    a = motion.keys[g, position.index]
-    b = motion.keys[g, position.index + 1]
-    w = position.weight[..., None, None]
-    to_world = blend(a, b, w)
-    return to_world, invert_transform(to_world), position.visible | ~motion.moving[g], motion.moving[g]
 
 
 def _instance_motion(tables: tuple[InstanceTable, ...]) -> InstanceMotion | None:

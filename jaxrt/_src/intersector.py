@@ -14,7 +14,10 @@ from jaxrt import tags as tag_module
 from jaxrt._src import curves as curve_support
 from jaxrt._src import pipeline
 from jaxrt._src.candidate import BoundingBoxCandidate, TriangleCandidate
-from jaxrt._src.instances import InstanceAccelerationStructure
+from jaxrt._src.instances import InstanceAccelerationStructure, InstanceOptions
+from jaxrt._src.kinds import registry
+from jaxrt._src.kinds.registry import BOUNDING_BOX, TRIANGLE
+from jaxrt._src.primitives.curve import CurveOptions
 from jaxrt._src.ray import Ray
 from jaxrt._src.result import IntersectionResult, IntersectionType
 from jaxrt._src.scene_view import primitive_structures
@@ -22,27 +25,9 @@ from jaxrt._src.structures import PrimitiveAccelerationStructure
 
 __all__ = ["Intersector", "count_intersections"]
 
-_SUPPORTED_TAGS = frozenset(
-    [
-        "triangle_data",
-        "curve_data",
-        "stats",
-        "instancing",
-        "max_levels",
-        "world_space_data",
-        "user_instance_id",
-        "primitive_data",
-        "normal",
-        "primitive_motion",
-        "instance_motion",
-    ]
-)
+_SUPPORTED_TAGS = registry.RESULT_TAGS
 #: Geometry kinds ``geometry_types`` may name (strings or ``rt.IntersectionType`` members).
-_GEOMETRY_TYPES = {
-    IntersectionType.TRIANGLE: "triangle",
-    IntersectionType.CURVE: "curve",
-    IntersectionType.BOUNDING_BOX: "bounding_box",
-}
+_GEOMETRY_TYPES = {IntersectionType(k.intersection_type): k.name for k in registry.KINDS}
 _CULL_MODES = ("none", "front", "back")
 _WINDINGS = ("clockwise", "counterclockwise")
 _BACKENDS = ("auto", "portable", "gpu", "cpu")
@@ -142,7 +127,6 @@ class Intersector:
                 f"Intersector: curve_control_point_count must be 2, 3 or 4, got {curve_control_point_count!r}"
             )
         self.curve_control_point_count = curve_control_point_count
-        from jaxrt._src.primitives.curve import CurveOptions
 
         if curve_options is not None and not isinstance(curve_options, CurveOptions):
             raise TypeError(f"Intersector: curve_options must be an rt.CurveOptions, got {curve_options!r}")
@@ -415,7 +399,6 @@ def _check_opacity_options(intersector: Intersector, structure: Any) -> None:
     traversal does not model: refuse them (where the options are concrete) rather than ignore them."""
     if intersector.filter is None or not isinstance(structure, InstanceAccelerationStructure):
         return
-    from jaxrt._src.instances import InstanceOptions
 
     override = int(InstanceOptions.OPAQUE | InstanceOptions.NON_OPAQUE)
     for table in structure.instance_tables:
@@ -447,7 +430,7 @@ def _check_user_functions(intersector: Intersector, prims: tuple[PrimitiveAccele
     returns one scalar (checked by tracing them abstractly).
     """
     functions = dict(intersector.intersection_functions or ())
-    boxes = sorted({i for s in prims for i, g in enumerate(s.geometry_info) if g.kind == "bounding_box"})
+    boxes = sorted({i for s in prims for i, g in enumerate(s.geometry_info) if BOUNDING_BOX.holds(g)})
     for index in boxes:
         if index not in functions:
             raise ValueError(
@@ -479,7 +462,7 @@ def _check_user_functions(intersector: Intersector, prims: tuple[PrimitiveAccele
                 f"Intersector: the intersection function of geometry {index} must return a pair (accept, "
                 f"distance) of scalars for one ray and one candidate, got {out!r}"
             )
-    non_opaque = any(g.kind == "triangle" and not g.opaque for s in prims for g in s.geometry_info)
+    non_opaque = any(TRIANGLE.holds(g) and not g.opaque for s in prims for g in s.geometry_info)
     if intersector.filter is not None and non_opaque:
         scalar = jax.ShapeDtypeStruct((), dtype)
         candidate = TriangleCandidate(

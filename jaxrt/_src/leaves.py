@@ -23,7 +23,9 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from jaxrt._src import curves as curve_support
 from jaxrt._src.candidate import BoundingBoxCandidate, TriangleCandidate
+from jaxrt._src.kinds.registry import BOUNDING_BOX, CURVE, TRIANGLE
 from jaxrt._src.primitive_data import data_at
 from jaxrt._src.primitives import triangle
 from jaxrt._src.ray import Ray
@@ -82,12 +84,12 @@ def filtered_slots(intersector: Any, view: SceneView) -> tuple[int, ...]:
     """Geometry slots of non-opaque triangle geometry whose candidates go to the intersector's filter."""
     if intersector.filter is None:
         return ()
-    return view.slots_where(lambda g: g.kind == "triangle" and not g.opaque)
+    return view.slots_where(lambda g: TRIANGLE.holds(g) and not g.opaque)
 
 
 def box_slots(view: SceneView) -> tuple[int, ...]:
     """Geometry slots of bounding-box geometry."""
-    return view.slots_where(lambda g: g.kind == "bounding_box")
+    return view.slots_where(BOUNDING_BOX.holds)
 
 
 class FilteredTriangleLeaves(TriangleLeaves):
@@ -208,8 +210,6 @@ class KindSwitch:
 
 def curve_configuration(intersector: Any, view: SceneView) -> dict:
     """The static curve code choices for every curve geometry of the scene (all levels share them)."""
-    from jaxrt._src import curves as curve_support
-
     infos = tuple(g.curve for g in view.geometry_info if g.curve is not None)
     return curve_support.curve_configuration(infos, intersector.curve_type, intersector.curve_options)
 
@@ -250,25 +250,23 @@ def leaf_tester(intersector: Any, view: SceneView, *, user_code: bool = True) ->
 
 
 def _static_tester(intersector: Any, view: SceneView, user_code: bool) -> Any:
-    from jaxrt._src import curves as curve_support
-
     detached = lax.stop_gradient
     kinds = view.kinds
     testers: dict[str, Any] = {}
-    if "triangle" in kinds:
+    if TRIANGLE.name in kinds:
         slots = filtered_slots(intersector, view) if user_code else ()
         if slots:
             clockwise_front = intersector.front_facing_winding == "clockwise"
-            testers["triangle"] = FilteredTriangleLeaves(
+            testers[TRIANGLE.name] = FilteredTriangleLeaves(
                 view, intersector.cull, clockwise_front, intersector.filter, slots
             )
         else:
-            testers["triangle"] = TriangleLeaves(detached(view.leaves.triangle), intersector.cull)
-    if "curve" in kinds:
+            testers[TRIANGLE.name] = TriangleLeaves(detached(view.leaves.triangle), intersector.cull)
+    if CURVE.name in kinds:
         config = curve_configuration(intersector, view)
-        testers["curve"] = curve_support.CurveLeaves(detached(view.leaves.curve), view.leaves.curve_flags, **config)
-    if "bounding_box" in kinds and user_code:
-        testers["bounding_box"] = BoxLeaves(view, intersector.intersection_functions or ())
+        testers[CURVE.name] = curve_support.CurveLeaves(detached(view.leaves.curve), view.leaves.curve_flags, **config)
+    if BOUNDING_BOX.name in kinds and user_code:
+        testers[BOUNDING_BOX.name] = BoxLeaves(view, intersector.intersection_functions or ())
     if len(testers) == 1 and set(testers) == set(kinds):
         return next(iter(testers.values()))
     return KindSwitch(view, testers)  # also when a kind has no test: its leaves never hit

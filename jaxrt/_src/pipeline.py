@@ -21,20 +21,24 @@ from jax import lax
 from jaxrt._src import fields as result_fields
 from jaxrt._src import filter_states
 from jaxrt._src import leaves as leaf_tests
+from jaxrt._src.kinds import registry
+from jaxrt._src.kinds.registry import BOUNDING_BOX, CURVE, TRIANGLE
 from jaxrt._src.numerics import full_precision
 from jaxrt._src.ray import Ray
 from jaxrt._src.result import IntersectionResult
 from jaxrt._src.scene_view import SceneView, scene_view
-from jaxrt._src.traversal import drivers, waves
-from jaxrt._src.traversal.scene import TraversalResult
+from jaxrt._src.traversal import cpu, drivers, gpu, waves
+from jaxrt._src.traversal.scene import TraversalRays, TraversalResult
 
 __all__ = [
     "CPU_CHUNK",
     "GPU_CHUNK",
     "GPU_REFILL_LANES",
+    "cpu_kernel_arguments",
+    "gpu_trace",
     "INTERSECT_CHUNK",
     "REFILL_LANES",
-    "SanitizedRays",
+    "sanitized_rays",
     "enabled_rays",
     "intersect",
     "kernel_declines",
@@ -70,19 +74,20 @@ def enabled_rays(rays: Ray) -> jax.Array:
     return finite & nonzero & interval & (rays.mask != 0)
 
 
-class SanitizedRays:
-    """A ray batch with disabled rays replaced by a harmless one (origin 0, direction +z, interval [0, 0])."""
-
-    def __init__(self, rays: Ray):
-        self.enabled = enabled_rays(rays)
-        on = self.enabled
-        unit_z = jnp.array([0.0, 0.0, 1.0], rays.direction.dtype)
-        self.origin = jnp.where(on[..., None], rays.origin, 0.0)
-        self.direction = jnp.where(on[..., None], rays.direction, unit_z)
-        self.t_min = jnp.where(on, rays.min_distance, 0.0)
-        self.t_max = jnp.where(on, rays.max_distance, 0.0)
-        self.mask = rays.mask
-        self.time = jnp.where(on, rays.time, 0.0)  # read only by scenes with keyframe motion
+def sanitized_rays(rays: Ray) -> TraversalRays:
+    """The :class:`~jaxrt._src.traversal.scene.TraversalRays` of a flat ray batch: disabled rays replaced by a
+    harmless one (origin 0, direction +z, interval [0, 0])."""
+    on = enabled_rays(rays)
+    unit_z = jnp.array([0.0, 0.0, 1.0], rays.direction.dtype)
+    return TraversalRays(
+        origin=jnp.where(on[..., None], rays.origin, 0.0),
+        direction=jnp.where(on[..., None], rays.direction, unit_z),
+        t_min=jnp.where(on, rays.min_distance, 0.0),
+        t_max=jnp.where(on, rays.max_distance, 0.0),
+        enabled=on,
+        mask=rays.mask,
+        time=jnp.where(on, rays.time, 0.0),  # read only by scenes with keyframe motion
+    )
 
 
 def kernel_declines(
@@ -93,66 +98,13 @@ def kernel_declines(
     that the scene has keyframe motion (primitive motion is also read from the geometries), ``levels`` how
     many instance levels it has.
 
-    The one place that decides their coverage (with :func:`jaxrt._src.traversal.gpu.unavailable_reason` and
-    :func:`jaxrt._src.traversal.cpu.unavailable_reason` for the machine and the tags). Both cover the same
-    cases: triangles, bounding boxes whose functions are the built-in ``rt.intersection_functions``
-    (recognised by identity) and hit lists (``max_hits`` and counting), except keyframe motion and round and
-    flat curves in a static primitive structure, which only the GPU kernel traces (curves and boxes in one
-    structure are not combined there). User intersection functions and filters call JAX code per candidate:
-    the GPU kernel covers them in a static primitive structure without curves, listing candidates in waves
-    (:mod:`jaxrt._src.traversal.waves`); elsewhere they take the portable traversal, as do curves below
-    instances or with motion.
+    Derived from the kind registry (:func:`jaxrt._src.kinds.registry.declines`): each kind's coverage on the
+    backend, and its decisions that need JAX (user intersection functions and filters, which the GPU kernel
+    hands over in candidate waves, :mod:`jaxrt._src.traversal.waves`). With
+    :func:`jaxrt._src.traversal.gpu.unavailable_reason` and :func:`jaxrt._src.traversal.cpu.unavailable_reason`
+    (the machine) it decides which traversal runs.
     """
-    name = "CPU traversal" if backend == "cpu" else "GPU kernel"
-    kinds = {g.kind for g in geometry_info}
-    moving = motion or any(g.motion for g in geometry_info)
-    # User code per candidate: the GPU kernel lists candidates in waves (traversal.waves) in a static primitive
-    # structure without curves.
-    in_waves = backend == "gpu" and waves.covers(geometry_info, motion=motion, levels=levels)
-    if "curve" in kinds:
-        if backend == "cpu":
-            return f"curves are not covered by the {name}"
-        if levels:
-            return f"curves below instances are not covered by the {name}"
-        if moving:
-            return f"curves in a structure with keyframe motion are not covered by the {name}"
-        if "bounding_box" in kinds:
-            return f"curves and bounding-box geometry in one structure are not covered by the {name}"
-    if "bounding_box" in kinds:
-        reason = _analytic_declines(intersector, backend, moving)
-        if reason is not None and not (in_waves and waves.user_functions(intersector)):
-            return reason
-    filtered = intersector.filter is not None and any(g.kind == "triangle" and not g.opaque for g in geometry_info)
-    if filtered and not in_waves:
-        where = "" if backend == "cpu" else " below instances, with keyframe motion or with curves"
-        return f"filters on non-opaque geometry{where} are not covered by the {name}"
-    if backend == "cpu" and moving:
-        return f"keyframe motion is not covered by the {name}"
-    return None
-
-
-def _analytic_declines(intersector: Any, backend: str, motion: bool) -> str | None:
-    """Why the compiled traversal of ``backend`` does not cover the bounding-box geometry of a scene traced
-    with ``intersector`` (``None``: it does, every function being built-in)."""
-    from jaxrt._src.primitives import analytic
-
-    name = "CPU traversal" if backend == "cpu" else "GPU kernel"
-    functions = intersector.intersection_functions or ()
-    user = [
-        f"geometry {index}: {getattr(fn, '__name__', repr(fn))}"
-        for index, fn in functions
-        if not analytic.shape_code(fn)
-    ]
-    if user or not functions:
-        listed = f" ({', '.join(user)})" if user else ""
-        where = " below instances, with keyframe motion or with curves" if backend == "gpu" and user else ""
-        return (
-            f"bounding-box geometry with user intersection functions{listed}{where} is not covered by the {name} "
-            "(it traces rt.intersection_functions.sphere, disk and capped_cylinder)"
-        )
-    if motion:
-        return f"bounding-box geometry in a scene with keyframe motion is not covered by the {name}"
-    return None
+    return registry.declines(intersector, geometry_info, backend, motion, levels)
 
 
 def resolve_backend(intersector: Any) -> str:
@@ -160,7 +112,6 @@ def resolve_backend(intersector: Any) -> str:
     backend (a forced ``"gpu"`` or ``"cpu"`` that cannot run raises ``ValueError``)."""
     if intersector.backend == "portable":
         return "portable"
-    from jaxrt._src.traversal import cpu, gpu
 
     if intersector.backend == "cpu":
         reason = cpu.unavailable_reason(intersector)
@@ -185,7 +136,7 @@ def _chunked(fn, args, chunk: int):
     return jax.tree_util.tree_map(lambda a: a.reshape(n, *a.shape[2:]), out)
 
 
-def _trace_portable(intersector: Any, view: SceneView, rays: SanitizedRays) -> TraversalResult:
+def _trace_portable(intersector: Any, view: SceneView, rays: TraversalRays) -> TraversalResult:
     """The portable stack traversal over chunks of rays, with the refill driver."""
     detached = lax.stop_gradient
     scene = jax.tree_util.tree_map(detached, view.traversal)
@@ -212,15 +163,13 @@ def _trace_portable(intersector: Any, view: SceneView, rays: SanitizedRays) -> T
     return _chunked(fn, args, chunk)
 
 
-def wave_lister(intersector: Any, view: SceneView, rays: SanitizedRays) -> Any:
+def wave_lister(intersector: Any, view: SceneView, rays: TraversalRays) -> Any:
     """The GPU kernel's wave for :mod:`jaxrt._src.traversal.waves`: ``(K, t_max, enabled, cursor_t,
     cursor_leaf) -> TraversalResult`` listing each ray's ``K`` first candidates past its cursor."""
-    from jaxrt._src.traversal import gpu
-
     detached = lax.stop_gradient
     scene = jax.tree_util.tree_map(detached, view.traversal)
     analytic = None
-    if "bounding_box" in view.kinds:
+    if BOUNDING_BOX.name in view.kinds:
         analytic = gpu.analytic_leaves(intersector.intersection_functions, view, jnp.float32, candidates=True)
     origin, direction, t_min = (detached(a) for a in (rays.origin, rays.direction, rays.t_min))
 
@@ -244,27 +193,30 @@ def wave_lister(intersector: Any, view: SceneView, rays: SanitizedRays) -> Any:
     return list_candidates
 
 
-def _trace_waves(intersector: Any, view: SceneView, rays: SanitizedRays) -> TraversalResult:
+def _trace_waves(intersector: Any, view: SceneView, rays: TraversalRays) -> TraversalResult:
     """The GPU kernel in candidate waves (:mod:`jaxrt._src.traversal.waves`): user functions and filters."""
     lister = wave_lister(intersector, view, rays)
-    return waves.trace_waves(intersector, view, rays, lister, candidates=waves.CANDIDATES, later=waves.LATER_CANDIDATES)
+    tester = leaf_tests.leaf_tester(intersector, view)
+    return waves.trace_waves(
+        intersector, tester, rays, lister, candidates=waves.CANDIDATES, later=waves.LATER_CANDIDATES
+    )
 
 
-def trace(intersector: Any, view: SceneView, rays: SanitizedRays, host: Any = None) -> TraversalResult:
+def trace(intersector: Any, view: SceneView, rays: TraversalRays, host: Any = None) -> TraversalResult:
     """Run the traversal the intersector and scene call for (a compiled one where it covers them). ``host``:
     the addresses the CPU traversal may read the scene from (:func:`jaxrt._src.traversal.cpu.host_scene`)."""
     backend = resolve_backend(intersector)
-    covered = kernel_declines(intersector, view.geometry_info, backend, view.layout.motion, view.layout.levels) is None
+    covered = backend != "portable" and (
+        kernel_declines(intersector, view.geometry_info, backend, view.layout.motion, view.layout.levels) is None
+    )
     if backend == "cpu":  # the CPU loop is compiled per float type: geometry and rays must share one
         covered = covered and view.traversal.node_lower.dtype == rays.origin.dtype
     if backend != "portable" and covered:
-        from jaxrt._src.traversal import cpu, gpu
-
         detached = lax.stop_gradient
         moving = {}  # keyframe motion (GPU kernel only): each ray's time and the triangle keyframes
         if view.layout.motion:
             moving = dict(time=detached(rays.time), leaf_motion=gpu.leaf_motion(view))
-        if backend == "gpu" and "curve" in view.kinds:  # curves: their rows and the static test options
+        if backend == "gpu" and CURVE.name in view.kinds:  # curves: their rows and the static test options
             moving.update(curves=gpu.curve_leaves(view, leaf_tests.curve_configuration(intersector, view)))
         if intersector.max_hits is not None or intersector.counts_all:
             moving.update(max_hits=0 if intersector.counts_all else intersector.max_hits)
@@ -280,7 +232,7 @@ def trace(intersector: Any, view: SceneView, rays: SanitizedRays, host: Any = No
                 no_triangle = jnp.zeros((), scene.leaf_triangle.dtype)
                 triangles = jnp.where(rejected[:, None, None], no_triangle, scene.leaf_triangle)
                 scene = scene._replace(leaf_triangle=triangles, kernel_layout=None)
-        if "bounding_box" in view.kinds:  # built-in functions (kernel_declines)
+        if BOUNDING_BOX.name in view.kinds:  # built-in functions (kernel_declines)
             dtype = view.traversal.node_lower.dtype if backend == "cpu" else jnp.float32
             moving.update(analytic=gpu.analytic_leaves(intersector.intersection_functions, view, dtype))
         return (cpu if backend == "cpu" else gpu).trace_scene(
@@ -302,7 +254,7 @@ def trace(intersector: Any, view: SceneView, rays: SanitizedRays, host: Any = No
 def _intersect_jit(intersector: Any, rays: Ray, structure: Any, host: Any = None) -> IntersectionResult:
     """The result for a flat, padded ray batch ``(n,)`` (inside ``jit``)."""
     view = scene_view(structure)
-    ray = SanitizedRays(rays)
+    ray = sanitized_rays(rays)
     found = trace(intersector, view, ray, host)
     if intersector.counts_all:
         return IntersectionResult({"hit_count": found.hits.total})
@@ -359,8 +311,6 @@ def intersect(intersector: Any, rays: Ray, structure: Any) -> IntersectionResult
         )
     host = None
     if resolve_backend(intersector) == "cpu":  # the CPU traversal reads a concrete scene in place
-        from jaxrt._src.traversal import cpu
-
         host = cpu.host_scene(structure, flat, with_rays=padded <= chunk)
     if padded <= chunk:
         result = _intersect_jit(intersector, flat, structure, host)
@@ -369,3 +319,57 @@ def intersect(intersector: Any, rays: Ray, structure: Any) -> IntersectionResult
     if padded == n and shape == (n,):  # nothing to cut or reshape (no extra dispatch per field)
         return result
     return jax.tree_util.tree_map(lambda a: a[:n].reshape(*shape, *a.shape[1:]), result)
+
+
+def gpu_trace(
+    structure: Any,
+    origin: jax.Array,
+    direction: jax.Array,
+    t_min: jax.Array,
+    t_max: jax.Array,
+    enabled: jax.Array,
+    *,
+    any_hit: bool,
+    cull: int,
+    options: Any = None,
+) -> TraversalResult:
+    """:func:`jaxrt._src.traversal.gpu.trace_scene` for a :class:`~jaxrt.PrimitiveAccelerationStructure`
+    (float32, triangles only), every ray mask all ones: the kernel with the packing of the scene's rows and of
+    the rays (for benchmarks; ``options``: a :class:`~jaxrt._src.traversal.gpu.KernelOptions`)."""
+    kinds = sorted(k.name for k in registry.present(structure.geometry_info) if k is not TRIANGLE)
+    if kinds:
+        raise NotImplementedError(f"pipeline.gpu_trace: geometry kinds {kinds} are not covered by the GPU kernel")
+    view = scene_view(structure)
+    mask = jnp.full(origin.shape[:1], 0xFFFFFFFF, jnp.uint32)
+    return gpu.trace_scene(
+        view.traversal,
+        view.layout,
+        origin,
+        direction,
+        t_min,
+        t_max,
+        enabled,
+        mask,
+        any_hit=any_hit,
+        cull=cull,
+        options=options,
+    )
+
+
+def cpu_kernel_arguments(structure: Any, rays: Ray, intersector: Any) -> tuple[tuple[int, ...], list]:
+    """``(params, arrays)`` for calling the compiled CPU traversal directly on host arrays (outside ``jit``), as
+    the intersector's callback would for ``rays`` (a :class:`jaxrt.Ray` of shape ``(N,)``): for benchmarks."""
+    view = scene_view(structure)
+    ray = sanitized_rays(rays)
+    dtype = view.traversal.node_lower.dtype
+    analytic = gpu.analytic_leaves(intersector.intersection_functions, view, dtype)
+    return cpu.kernel_arguments(
+        view.traversal,
+        view.layout,
+        ray,
+        any_hit=intersector.accept_any_intersection,
+        cull=intersector.cull,
+        max_hits=0 if intersector.counts_all else intersector.max_hits,
+        count_all=intersector.counts_all,
+        analytic=analytic,
+    )

@@ -25,6 +25,8 @@ import numpy as np
 from jax import lax
 
 from jaxrt._src.instances import InstanceAccelerationStructure
+from jaxrt._src.kinds import registry
+from jaxrt._src.kinds.registry import BOUNDING_BOX
 from jaxrt._src.point_traversal import lanes_for_backend, walk_points
 from jaxrt._src.primitives import point_triangle as geo
 from jaxrt._src.structures import PrimitiveAccelerationStructure
@@ -64,9 +66,10 @@ def check_structure(structure, name: str) -> PrimitiveAccelerationStructure:
         )
     if not isinstance(structure, PrimitiveAccelerationStructure):
         raise TypeError(f"{name}: structure must be a PrimitiveAccelerationStructure, got {type(structure).__name__}")
-    kinds = {g.kind for g in structure.geometry_info}
-    if "curve" in kinds:
-        raise NotImplementedError(f"{name}: curve geometry is not supported; supported kinds: triangle, bounding_box")
+    for kind in registry.present(structure.geometry_info):
+        if kind.closest_point is None:
+            supported = ", ".join(k.name for k in registry.KINDS if k.closest_point is not None)
+            raise NotImplementedError(f"{name}: {kind.name} geometry is not supported; supported kinds: {supported}")
     return structure
 
 
@@ -162,7 +165,7 @@ def _search(structure: PrimitiveAccelerationStructure, is_box_table, limit2: jax
 def _box_table(structure: PrimitiveAccelerationStructure):
     if structure.leaf_box is None:
         return None
-    table = np.array([g.kind == "bounding_box" for g in structure.geometry_info] + [False])
+    table = np.array([BOUNDING_BOX.holds(g) for g in structure.geometry_info] + [False])
     return jnp.asarray(table)
 
 

@@ -42,6 +42,9 @@ from jax import lax
 
 from jaxrt._src import leaves as leaf_tests
 from jaxrt._src.instances import InstanceAccelerationStructure
+from jaxrt._src.intersector import Intersector, _check_levels
+from jaxrt._src.kinds.registry import BOUNDING_BOX, KINDS, TRIANGLE
+from jaxrt._src.pipeline import resolve_backend, sanitized_rays, wave_lister
 from jaxrt._src.primitive_data import data_at
 from jaxrt._src.primitives import triangle
 from jaxrt._src.primitives.box import ray_box
@@ -79,9 +82,7 @@ class _OpaqueLeaves:
 
 def _candidate_table(view: SceneView) -> jax.Array:
     """Geometries whose primitives are candidates: non-opaque triangles and boxes (padding row last)."""
-    return view.slot_table(
-        view.slots_where(lambda g: (g.kind == "triangle" and not g.opaque) or g.kind == "bounding_box")
-    )
+    return view.slot_table(view.slots_where(lambda g: (TRIANGLE.holds(g) and not g.opaque) or BOUNDING_BOX.holds(g)))
 
 
 class _Held:
@@ -209,10 +210,8 @@ class IntersectionQuery:
 
     def _kind(self, leaf: jax.Array) -> jax.Array:
         view = self._view
-        kinds = [
-            _BOX if g.kind == "bounding_box" else _TRIANGLE if g.kind == "triangle" else int(IntersectionType.CURVE)
-            for g in view.geometry_info
-        ]
+        types = {k.name: k.intersection_type for k in KINDS}
+        kinds = [types[g.kind] for g in view.geometry_info]
         slot = view.leaves.slot[jnp.maximum(leaf, 0)]
         return jnp.where(leaf >= 0, jnp.asarray(kinds, jnp.int32)[jnp.maximum(slot, 0)], _NONE)
 
@@ -385,16 +384,12 @@ def _decided_by_the_loop(ray: Any, candidate: Any) -> Any:
 
 def _lister(intersector: Any, view: SceneView, rays: Any) -> Any:
     """The kernel's listing of candidates past a cursor (:func:`jaxrt._src.pipeline.wave_lister`)."""
-    from jaxrt._src.pipeline import wave_lister
-
     return wave_lister(intersector, view, rays)
 
 
 def lists_with_the_kernel(intersector: Any, structure: Any) -> bool:
     """Whether a query of ``structure`` lists its candidates with the GPU kernel: where candidate waves cover
     the structure (:func:`jaxrt._src.traversal.waves.covers`) and the intersector's backend is the kernel."""
-    from jaxrt._src.pipeline import resolve_backend
-
     if not isinstance(structure, PrimitiveAccelerationStructure):
         return False
     return waves.covers(structure.geometry_info, motion=structure.motion is not None) and (
@@ -414,10 +409,8 @@ class _ListedRay(NamedTuple):
 def _list(q: IntersectionQuery) -> IntersectionQuery:
     """List the next ``K`` candidates past the cursor (opaque triangles included), culled by the committed
     distance, where none is left (elsewhere the ray is disabled in the launch, and nothing changes)."""
-    from jaxrt._src.intersector import Intersector
-
     view, k = q._view, q.listing
-    boxes = {i: _decided_by_the_loop for i, g in enumerate(view.geometry_info) if g.kind == "bounding_box"}
+    boxes = {i: _decided_by_the_loop for i, g in enumerate(view.geometry_info) if BOUNDING_BOX.holds(g)}
     lister_of = Intersector(triangle_cull_mode=q.intersector.triangle_cull_mode,
                             front_facing_winding=q.intersector.front_facing_winding,
                             intersection_functions=boxes or None)  # fmt: skip
@@ -475,9 +468,6 @@ def intersection_query(rays: Ray, structure: PrimitiveAccelerationStructure, int
       ValueError: ``rays`` is not a single ray, or instances nested deeper than the intersector's
         ``max_levels``.
     """
-    from jaxrt._src.intersector import Intersector, _check_levels
-    from jaxrt._src.pipeline import SanitizedRays
-
     if not isinstance(rays, Ray):
         raise TypeError(f"intersection_query: rays must be an rt.Ray, got {type(rays).__name__}")
     if rays.shape != ():
@@ -498,7 +488,7 @@ def intersection_query(rays: Ray, structure: PrimitiveAccelerationStructure, int
             "intersection_query: structures with keyframe motion are traced with Intersector.intersect; the "
             "query does not blend keyframes at the ray's time"
         )
-    ray = SanitizedRays(rays)
+    ray = sanitized_rays(rays)
     origin, direction = ray.origin, ray.direction
     view = scene_view(structure)
     constants, state = start(

@@ -8,6 +8,8 @@ from typing import Any
 
 import jax
 
+from jaxrt._src.kinds import registry
+
 __all__ = ["IntersectionType", "IntersectionResult", "FIELD_TAGS"]
 
 
@@ -24,23 +26,9 @@ class IntersectionType(enum.IntEnum):
     """A curve segment."""
 
 
-#: The tag that adds each optional result field.
-FIELD_TAGS = {
-    "triangle_barycentric_coord": "triangle_data",
-    "triangle_front_facing": "triangle_data",
-    "curve_parameter": "curve_data",
-    "instance_id": "instancing",
-    "instance_count": "instancing",
-    "user_instance_id": "instancing",
-    "object_to_world_transform": "world_space_data",
-    "world_to_object_transform": "world_space_data",
-    "time": "primitive_motion",
-    "primitive_data": "primitive_data",
-    "nodes_visited": "stats",
-    "primitives_tested": "stats",
-    "stack_overflow": "stats",
-    "normal": "normal",
-}
+#: The tag that adds each optional result field (the kinds' own and the scene's,
+#: :data:`jaxrt._src.kinds.registry.FIELD_TAGS`).
+FIELD_TAGS = registry.FIELD_TAGS
 
 
 @jax.tree_util.register_pytree_node_class

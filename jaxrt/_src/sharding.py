@@ -27,6 +27,7 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from jaxrt._src import pipeline
+from jaxrt._src.intersector import Intersector
 from jaxrt._src.ray import Ray
 from jaxrt._src.result import IntersectionResult
 
@@ -178,8 +179,6 @@ def intersect_sharded(intersector: Any, rays: Ray, structure: Any, *, mesh: Mesh
       >>> rt.intersect_sharded(rt.Intersector(), rays, s).distance.tolist()
       [1.0, 1.0, 1.0, 1.0, 1.0]
     """
-    from jaxrt._src.intersector import Intersector
-
     if not isinstance(intersector, Intersector):
         raise TypeError(f"intersect_sharded: intersector must be an rt.Intersector, got {type(intersector).__name__}")
     if not isinstance(rays, Ray):

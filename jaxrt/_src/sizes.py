@@ -1,4 +1,5 @@
-"""Structure sizes: the bytes of every array of a structure, before building it (Metal's size queries).
+"""Structure sizes: the bytes of every array of a structure, before building it (Metal's size queries), and
+the SAH cost of a built one (:func:`sah_cost`).
 
 Metal asks ``accelerationStructureSizesWithDescriptor:`` for the bytes a build will need. Here the build is a
 pure JAX function, so :func:`structure_sizes` runs it under :func:`jax.eval_shape`: the shapes and dtypes come
@@ -15,10 +16,12 @@ from typing import Any
 import jax
 import numpy as np
 
+from jaxrt._src.bvh.sah import tree_cost
 from jaxrt._src.instances import InstanceAccelerationStructure, Instances, build_instance_structure
-from jaxrt._src.structures import PrimitiveAccelerationStructure, build_primitive_structure
+from jaxrt._src.prepacked import build_primitive_structure
+from jaxrt._src.structures import PrimitiveAccelerationStructure
 
-__all__ = ["StructureSizes", "structure_sizes", "array_bytes"]
+__all__ = ["StructureSizes", "structure_sizes", "array_bytes", "sah_cost"]
 
 _OWNER = "structure_sizes"
 
@@ -121,3 +124,33 @@ def structure_sizes(
         lambda g: build_primitive_structure(g, capacity=capacity, quality=quality, motion=motion), x
     )
     return array_bytes(abstract)
+
+
+def sah_cost(structure: Any) -> float:
+    """The SAH cost of a structure's own tree (:mod:`jaxrt._src.bvh.sah`), on the host in float64.
+
+    Args:
+      structure: a :class:`~jaxrt.PrimitiveAccelerationStructure`, or an
+        :class:`~jaxrt.InstanceAccelerationStructure` (the cost of its own tree over instance boxes).
+
+    Returns:
+      The cost, at least 1 for a non-empty tree (the root itself); padding and compaction do not change it.
+
+    Raises:
+      TypeError: ``structure`` is not an acceleration structure. ValueError: a batched structure, or one
+        whose root box is empty or has no area (every primitive a point or a segment along one axis).
+
+    Examples:
+      >>> import jaxrt as rt
+      >>> two = rt.TriangleGeometry([[0., 0, 0], [1, 0, 0], [0, 1, 0], [0., 0, 1], [1, 0, 1], [0, 1, 1]])
+      >>> round(rt.sah_cost(rt.build_primitive_structure(two)), 3)  # (root 6 + two flat leaves of 2) / 6
+      1.667
+    """
+    if isinstance(structure, InstanceAccelerationStructure):
+        structure = structure.root
+    elif not isinstance(structure, PrimitiveAccelerationStructure):
+        raise TypeError(
+            f"sah_cost: structure must be a PrimitiveAccelerationStructure or an InstanceAccelerationStructure, "
+            f"got {type(structure).__name__}"
+        )
+    return tree_cost(structure.node_lower, structure.node_upper, structure.node_children)

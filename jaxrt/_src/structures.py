@@ -43,6 +43,8 @@ as much again as the arrays above for a triangle structure): packed once where t
 a trace does not repack them. Builds add it where the GPU kernel can run (default backend a GPU, Triton and
 jax-triton installed, float32 triangles without motion) or where ``kernel_layout=True`` asks; refit, compaction
 and loading keep it consistent with the arrays. Without it (CPU installs) the kernel packs the rows per call.
+This module imports nothing of the kernel: the field is an opaque pytree here, and the GPU side
+(:mod:`jaxrt._src.prepacked`) passes its packer to :func:`build_structure` and :func:`refit_primitives`.
 
 With keyframe motion (static ``motion``, a :class:`~jaxrt.MotionSpec`) ``node_lower``/``node_upper`` bound
 each primitive over every keyframe (the union of its keyframe boxes; instance boxes and the SAH cost read
@@ -61,7 +63,6 @@ clustering tree hangs the padding leaves under the root in a subtree of their ow
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 from collections.abc import Sequence
 from typing import Any
 
@@ -74,22 +75,25 @@ from jaxrt._src.bvh.boxes import child_boxes, range_boxes
 from jaxrt._src.bvh.morton import morton_codes
 from jaxrt._src.bvh.ploc import restructure
 from jaxrt._src.bvh.radix_tree import build_radix_tree, tree_depth_bound
+from jaxrt._src.checks import check_geometries
 from jaxrt._src.curves import CurveGeometry, CurveInfo, MotionCurveGeometry, curve_leaves
 from jaxrt._src.geometry import BoundingBoxGeometry, MotionBoundingBoxGeometry, MotionTriangleGeometry, TriangleGeometry
+from jaxrt._src.kinds import registry
+from jaxrt._src.kinds.registry import BOUNDING_BOX, CURVE, TRIANGLE
 from jaxrt._src.motion import MotionSpec, motion_bounds
 from jaxrt._src.numerics import full_precision
 from jaxrt._src.primitive_data import gather_leaf_data, primitive_data_layout
 from jaxrt._src.primitives import triangle
-from jaxrt._src.traversal.packed import KernelLayout
-from jaxrt._src.traversal.packed import kernel_layout as pack_kernel_layout
 
 __all__ = [
     "PrimitiveAccelerationStructure",
-    "build_primitive_structure",
+    "build_structure",
     "refit_primitives",
     "capacity_bucket",
-    "kernel_layout_wanted",
-    "with_kernel_layout",
+    "geometry_info",
+    "geometries_dtype",
+    "as_geometry_tuple",
+    "QUALITIES",
 ]
 
 
@@ -131,7 +135,7 @@ class PrimitiveAccelerationStructure:
     motion_node_lower: jax.Array | None = None
     motion_node_upper: jax.Array | None = None
     motion: MotionSpec | None = dataclasses.field(default=None, metadata=dict(static=True))
-    kernel_layout: KernelLayout | None = None
+    kernel_layout: Any = None  # the GPU kernel's rows (a KernelLayout), or None
 
     @property
     def keyframe_count(self) -> int:
@@ -159,31 +163,6 @@ class PrimitiveAccelerationStructure:
         return tree_depth_bound(self.capacity)
 
 
-def kernel_layout_wanted(geometry_info: tuple[GeometryInfo, ...], dtype: Any) -> bool:
-    """Whether a structure of these geometries gets a packed :class:`KernelLayout` by default: the GPU kernel
-    can trace it here (a GPU backend with Triton and jax-triton installed; float32 triangles, no motion)."""
-    if jax.default_backend() != "gpu" or jnp.dtype(dtype) != jnp.float32:
-        return False
-    if any(g.kind != "triangle" or g.motion for g in geometry_info):
-        return False
-    return all(importlib.util.find_spec(name) is not None for name in ("triton", "jax_triton"))
-
-
-def with_kernel_layout(
-    structure: PrimitiveAccelerationStructure, wanted: bool | None = None
-) -> PrimitiveAccelerationStructure:
-    """``structure`` with its :class:`KernelLayout` packed from its arrays (``wanted`` true, or ``None`` and
-    :func:`kernel_layout_wanted`), or without one."""
-    if wanted is None:
-        wanted = kernel_layout_wanted(structure.geometry_info, structure.node_lower.dtype)
-    layout = None
-    if wanted:
-        layout = pack_kernel_layout(
-            structure.node_lower, structure.node_upper, structure.node_children, structure.leaf_triangle
-        )
-    return dataclasses.replace(structure, kernel_layout=layout)
-
-
 def capacity_bucket(count: int, capacity: int | None = None) -> int:
     """The power-of-two capacity for ``count`` primitives (at least 2 and at least ``capacity``)."""
     if capacity is not None:
@@ -197,7 +176,8 @@ _MOTION_CLASSES = (MotionTriangleGeometry, MotionCurveGeometry, MotionBoundingBo
 _GEOMETRY_CLASSES = (TriangleGeometry, CurveGeometry, BoundingBoxGeometry, *_MOTION_CLASSES)
 
 
-def _geometry_info(g: Any) -> GeometryInfo:
+def geometry_info(g: Any) -> GeometryInfo:
+    """The static :class:`GeometryInfo` of a geometry."""
     curve = g.info if isinstance(g, CurveGeometry | MotionCurveGeometry) else None
     return GeometryInfo(g.kind, g.opaque, curve, isinstance(g, _MOTION_CLASSES))
 
@@ -233,7 +213,8 @@ def _keyframes(geometries: tuple, count: int) -> list[tuple]:
     return [tuple(g.keyframe(k) if isinstance(g, _MOTION_CLASSES) else g for g in geometries) for k in range(count)]
 
 
-def _as_geometry_tuple(geometries: Any) -> tuple[TriangleGeometry, ...]:
+def as_geometry_tuple(geometries: Any) -> tuple[TriangleGeometry, ...]:
+    """``geometries`` (one or a sequence) as a tuple, checked (named ``TypeError`` and ``ValueError``)."""
     if isinstance(geometries, _GEOMETRY_CLASSES):
         geometries = (geometries,)
     if not isinstance(geometries, Sequence) or isinstance(geometries, str):
@@ -257,10 +238,10 @@ def _as_geometry_tuple(geometries: Any) -> tuple[TriangleGeometry, ...]:
 def _leaf_primitives(geometries: tuple[TriangleGeometry, ...], capacity: int):
     """Concatenated triangles, ids and boxes of all geometries, padded to ``capacity`` (unsorted)."""
     curves = curve_leaves(geometries, capacity)  # None without curve geometries
-    dtype = _float_dtype(geometries)
+    dtype = geometries_dtype(geometries)
     triangles = jnp.concatenate(
         [
-            g.triangle_vertices() if g.kind == "triangle" else jnp.zeros((g.primitive_count, 3, 3), dtype)
+            g.triangle_vertices() if TRIANGLE.holds(g) else jnp.zeros((g.primitive_count, 3, 3), dtype)
             for g in geometries
         ],
         axis=0,
@@ -276,33 +257,36 @@ def _leaf_primitives(geometries: tuple[TriangleGeometry, ...], capacity: int):
     # A triangle whose edge vectors have an exactly zero cross product has no area: it gets an empty box, so
     # no ray tests it. (Its sheared projection could round it into a sub-ulp sliver that a ray would hit.)
     enterable = valid & triangle.has_area(triangles)
-    lower = jnp.where(enterable[:, None], jnp.min(triangles, axis=1), jnp.inf)
-    upper = jnp.where(enterable[:, None], jnp.max(triangles, axis=1), -jnp.inf)
+    triangle_lower, triangle_upper = TRIANGLE.bounds(triangles)
+    lower = jnp.where(enterable[:, None], triangle_lower, jnp.inf)
+    upper = jnp.where(enterable[:, None], triangle_upper, -jnp.inf)
     if curves is not None:  # curve segments: their Bezier hull grown by the radius
         lower = jnp.where(curves.is_curve[:, None], curves.lower, lower)
         upper = jnp.where(curves.is_curve[:, None], curves.upper, upper)
     boxes = _leaf_boxes(geometries, capacity, dtype)
     if boxes is not None:  # box primitives: their own box
         is_box = boxes[:, 0, 0] <= boxes[:, 1, 0]
-        lower = jnp.where(is_box[:, None], boxes[:, 0], lower)
-        upper = jnp.where(is_box[:, None], boxes[:, 1], upper)
+        box_lower, box_upper = BOUNDING_BOX.bounds(boxes)
+        lower = jnp.where(is_box[:, None], box_lower, lower)
+        upper = jnp.where(is_box[:, None], box_upper, upper)
     return triangles, geometry_id, primitive_id, lower, upper, valid, curves, boxes
 
 
-def _float_dtype(geometries) -> jnp.dtype:
+def geometries_dtype(geometries) -> jnp.dtype:
+    """The float type of a sequence of geometries (the first one's)."""
     first = geometries[0]
-    return {"triangle": lambda: first.vertices, "curve": lambda: first.control_points}.get(
-        first.kind, lambda: first.lower
-    )().dtype
+    return {TRIANGLE: lambda: first.vertices, CURVE: lambda: first.control_points, BOUNDING_BOX: lambda: first.lower}[
+        registry.kind(first.kind)
+    ]().dtype
 
 
 def _leaf_boxes(geometries, capacity: int, dtype) -> jax.Array | None:
     """``(C, 2, 3)`` corners of the box primitives in unsorted slot order (empty for other rows), or ``None``."""
-    if not any(g.kind == "bounding_box" for g in geometries):
+    if not any(BOUNDING_BOX.holds(g) for g in geometries):
         return None
     empty = lambda n: jnp.stack([jnp.full((n, 3), jnp.inf, dtype), jnp.full((n, 3), -jnp.inf, dtype)], 1)  # noqa: E731
     rows = [
-        jnp.stack([g.lower, g.upper], axis=1).astype(dtype) if g.kind == "bounding_box" else empty(g.primitive_count)
+        jnp.stack([g.lower, g.upper], axis=1).astype(dtype) if BOUNDING_BOX.holds(g) else empty(g.primitive_count)
         for g in geometries
     ]
     count = sum(g.primitive_count for g in geometries)
@@ -335,14 +319,15 @@ def _code_bounds(triangles, curves, boxes) -> tuple[jax.Array, jax.Array]:
     """The boxes whose centroids give the Morton codes."""
     # Codes from the triangles' own boxes: a zero-area triangle's empty box has no centroid.
     bounds = lax.stop_gradient(triangles)
-    code_lower, code_upper = jnp.min(bounds, axis=1), jnp.max(bounds, axis=1)
+    code_lower, code_upper = TRIANGLE.bounds(bounds)
     if curves is not None:  # curve segments: the centroids of their boxes
         code_lower = jnp.where(curves.is_curve[:, None], lax.stop_gradient(curves.lower), code_lower)
         code_upper = jnp.where(curves.is_curve[:, None], lax.stop_gradient(curves.upper), code_upper)
     if boxes is not None:  # box primitives: the centroids of the boxes
         is_box = boxes[:, 0, 0] <= boxes[:, 1, 0]
-        code_lower = jnp.where(is_box[:, None], lax.stop_gradient(boxes[:, 0]), code_lower)
-        code_upper = jnp.where(is_box[:, None], lax.stop_gradient(boxes[:, 1]), code_upper)
+        box_lower, box_upper = BOUNDING_BOX.bounds(lax.stop_gradient(boxes))
+        code_lower = jnp.where(is_box[:, None], box_lower, code_lower)
+        code_upper = jnp.where(is_box[:, None], box_upper, code_upper)
     return code_lower, code_upper
 
 
@@ -352,7 +337,7 @@ def _build(
     capacity: int,
     quality: str = "fast",
     motion: MotionSpec | None = None,
-    packed: bool = False,
+    packer: Any = None,
 ) -> PrimitiveAccelerationStructure:
     count_keys = _keyframe_count(geometries, motion, "build_primitive_structure")
     frames = [_leaf_primitives(f, capacity) for f in _keyframes(geometries, count_keys)]
@@ -390,7 +375,7 @@ def _build(
             motion_node_lower=lax.stop_gradient(jnp.stack([b[0] for b in keyed])),
             motion_node_upper=lax.stop_gradient(jnp.stack([b[1] for b in keyed])),
         )
-    info = tuple(_geometry_info(g) for g in geometries)
+    info = tuple(geometry_info(g) for g in geometries)
     return PrimitiveAccelerationStructure(
         node_lower=lax.stop_gradient(node_lower),
         node_upper=lax.stop_gradient(node_upper),
@@ -407,7 +392,7 @@ def _build(
         leaf_primitive_data=gather_leaf_data(geometries, capacity, order),
         **_motion_leaves(frames, order, motion),
         **motion_nodes,
-        kernel_layout=pack_kernel_layout(node_lower, node_upper, children, triangles[order]) if packed else None,
+        kernel_layout=None if packer is None else packer(node_lower, node_upper, children, triangles[order]),
     )
 
 
@@ -416,8 +401,9 @@ def _keyframe_boxes(frame) -> tuple[jax.Array, jax.Array]:
     triangle flat at one keyframe may have area between keyframes, and the blend needs finite corners."""
     triangles, _, _, lower, upper, valid, _, _ = frame
     flat = valid & jnp.any(lower > upper, axis=-1)
-    lower = jnp.where(flat[:, None], jnp.min(triangles, axis=1), lower)
-    upper = jnp.where(flat[:, None], jnp.max(triangles, axis=1), upper)
+    triangle_lower, triangle_upper = TRIANGLE.bounds(triangles)
+    lower = jnp.where(flat[:, None], triangle_lower, lower)
+    upper = jnp.where(flat[:, None], triangle_upper, upper)
     return lower, upper
 
 
@@ -436,20 +422,23 @@ def _motion_leaves(frames: list, order: jax.Array, motion: MotionSpec | None) ->
 
 
 _build_jit = jax.jit(_build, static_argnums=(1, 2, 3, 4))
+
 #: Build qualities: the LBVH ("fast") and agglomerative clustering of its Morton order ("high").
 QUALITIES = ("fast", "high")
 
 
-def build_primitive_structure(
+def build_structure(
     geometries: TriangleGeometry | Sequence[TriangleGeometry],
     *,
     motion: Any = None,
     capacity: int | None = None,
     quality: str = "fast",
     checks: bool = False,
-    kernel_layout: bool | None = None,
+    packer: Any = None,
 ) -> PrimitiveAccelerationStructure:
-    """Build an LBVH over one or more geometries (jitted; also callable on traced arrays inside ``jax.jit``).
+    """Build an LBVH over one or more geometries (jitted; also callable on traced arrays inside ``jax.jit``):
+    ``rt.build_primitive_structure`` (:func:`jaxrt._src.prepacked.build_primitive_structure`) without deciding
+    on the GPU kernel's rows.
 
     Morton codes of the primitive box centroids (30 bits), a stable radix sort, the Karras 2012 radix tree
     with the index tie-break for equal codes, and node boxes from a sparse-table range reduction.
@@ -472,9 +461,9 @@ def build_primitive_structure(
         (inside ``jit``, a ``jax.errors.JaxRuntimeError`` carrying its message, which
         :func:`~jaxrt.build_check_errors` raises as the former) instead of silent misses.
         Costs a host synchronisation per build (:mod:`jaxrt._src.checks`).
-      kernel_layout: also store the GPU kernel's packed node and triangle rows (112 bytes per leaf slot), so
-        that traces on the GPU do not repack them per call. ``None`` (the default): where the GPU kernel can
-        trace the structure (a GPU backend with Triton and jax-triton; float32 triangles without motion).
+      packer: static; ``None``, or the function that packs the GPU kernel's rows from the node arrays and
+        leaf triangles (``(node_lower, node_upper, node_children, leaf_triangle) -> KernelLayout``), run in the
+        same compiled build.
 
     Returns:
       A :class:`PrimitiveAccelerationStructure`. Leaf vertices keep their gradient connection to the
@@ -488,21 +477,17 @@ def build_primitive_structure(
     """
     if quality not in QUALITIES:
         raise ValueError(f"build_primitive_structure: quality must be one of {QUALITIES}, got {quality!r}")
-    geometries = _as_geometry_tuple(geometries)
+    geometries = as_geometry_tuple(geometries)
     keys = _keyframe_count(geometries, motion, "build_primitive_structure")  # named errors outside jit
     if checks:
-        from jaxrt._src.checks import check_geometries
-
         for k, frame in enumerate(_keyframes(geometries, keys)):
             check_geometries(frame, "build_primitive_structure" + (f" (keyframe {k})" if keys > 1 else ""))
     total = sum(g.primitive_count for g in geometries)
-    if kernel_layout is None:
-        kernel_layout = kernel_layout_wanted(tuple(map(_geometry_info, geometries)), _float_dtype(geometries))
-    return _build_jit(geometries, capacity_bucket(total, capacity), quality, motion, bool(kernel_layout))
+    return _build_jit(geometries, capacity_bucket(total, capacity), quality, motion, packer)
 
 
 @full_precision
-def _refit(structure: PrimitiveAccelerationStructure, geometries: tuple[TriangleGeometry, ...]):
+def _refit(structure: PrimitiveAccelerationStructure, geometries: tuple[TriangleGeometry, ...], packer: Any):
     triangles, _, _, lower, upper, _, curves, boxes = _leaf_primitives(geometries, structure.capacity)
     # Leaf k holds unsorted slot order[k]; recover it from the stored ids (slot = offset + primitive).
     offsets = jnp.cumsum(jnp.array([0] + [g.primitive_count for g in geometries[:-1]], jnp.int32))
@@ -513,8 +498,8 @@ def _refit(structure: PrimitiveAccelerationStructure, geometries: tuple[Triangle
     node_lower, node_upper = _node_boxes(structure.node_children, structure.node_range, leaf_lower, leaf_upper)
     leaf_triangle = jnp.where(padding[:, None, None], 0.0, triangles[slot])
     layout = None
-    if structure.kernel_layout is not None:  # kept consistent with the refitted boxes and triangles
-        layout = pack_kernel_layout(node_lower, node_upper, structure.node_children, leaf_triangle)
+    if packer is not None:  # kept consistent with the refitted boxes and triangles
+        layout = packer(node_lower, node_upper, structure.node_children, leaf_triangle)
     return dataclasses.replace(
         structure,
         node_lower=lax.stop_gradient(node_lower),
@@ -530,19 +515,22 @@ def _refit(structure: PrimitiveAccelerationStructure, geometries: tuple[Triangle
     )
 
 
-_refit_jit = jax.jit(_refit)
+_refit_jit = jax.jit(_refit, static_argnums=2)
 
 
-def refit_primitives(structure: PrimitiveAccelerationStructure, geometries: Any) -> PrimitiveAccelerationStructure:
+def refit_primitives(
+    structure: PrimitiveAccelerationStructure, geometries: Any, packer: Any = None
+) -> PrimitiveAccelerationStructure:
     """Recompute the boxes of a primitive structure for moved vertices, keeping its topology (Metal's refit).
 
     The geometries must have the same kinds and primitive counts as those the structure was built from.
-    Tree quality degrades as primitives move far from where they were built; rebuild then.
+    Tree quality degrades as primitives move far from where they were built; rebuild then. ``packer``: as for
+    :func:`build_structure` (``None``: the result carries no kernel rows).
     """
-    geometries = _as_geometry_tuple(geometries)
+    geometries = as_geometry_tuple(geometries)
     if structure.motion is not None:
         raise NotImplementedError("refit: structures with keyframe motion are rebuilt, not refitted")
-    info = tuple(_geometry_info(g) for g in geometries)
+    info = tuple(geometry_info(g) for g in geometries)
     if info != structure.geometry_info:
         raise ValueError(f"refit: geometries {info} do not match the structure's {structure.geometry_info}")
     counts = [g.primitive_count for g in geometries]
@@ -550,4 +538,4 @@ def refit_primitives(structure: PrimitiveAccelerationStructure, geometries: Any)
         have = np.asarray(structure.geometry_primitive_count).tolist()
         if counts != have:
             raise ValueError(f"refit: the geometries have {counts} primitives, the structure was built from {have}")
-    return _refit_jit(structure, geometries)
+    return _refit_jit(structure, geometries, packer)

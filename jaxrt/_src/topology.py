@@ -18,15 +18,16 @@ from typing import Any
 import jax
 import numpy as np
 
+from jaxrt._src.kinds.registry import BOUNDING_BOX, TRIANGLE
+from jaxrt._src.structures import PrimitiveAccelerationStructure
+
 __all__ = ["boundary_edge_count", "is_closed", "warn_if_open"]
 
 
 def _triangles_as_indices(surface: Any) -> np.ndarray | None:
     """``(T, 3)`` vertex indices of the surface's triangles (``None``: no triangles; boxes are closed)."""
-    from jaxrt._src.structures import PrimitiveAccelerationStructure
-
     if isinstance(surface, PrimitiveAccelerationStructure):
-        triangle_slots = [g for g, info in enumerate(surface.geometry_info) if info.kind == "triangle"]
+        triangle_slots = [g for g, info in enumerate(surface.geometry_info) if TRIANGLE.holds(info)]
         if not triangle_slots:
             return None
         geometry = np.asarray(surface.leaf_geometry)
@@ -34,10 +35,9 @@ def _triangles_as_indices(surface: Any) -> np.ndarray | None:
         # one vertex per position: triangles of a structure share vertices by their exact coordinates
         _, index = np.unique(rows, axis=0, return_inverse=True)
         return index.reshape(-1, 3)
-    kind = getattr(surface, "kind", None)
-    if kind == "triangle":
+    if hasattr(surface, "kind") and TRIANGLE.holds(surface):
         return np.asarray(surface.indices).reshape(-1, 3)
-    if kind == "bounding_box":
+    if hasattr(surface, "kind") and BOUNDING_BOX.holds(surface):
         return None
     raise TypeError(
         "is_closed: expected a TriangleGeometry, MotionTriangleGeometry, BoundingBoxGeometry or "

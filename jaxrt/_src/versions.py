@@ -20,6 +20,8 @@ import re
 import warnings
 
 #: The jax versions CI tests: ``MIN_JAX <= jax < BELOW_JAX`` (the range in ``pyproject.toml``).
+#: This release of jaxrt (``jaxrt.__version__``; pyproject.toml states the same).
+VERSION = "0.1.0"
 MIN_JAX = (0, 10, 2)
 BELOW_JAX = (0, 13)
 #: jaxlib minor versions whose CPU YNNPACK reduce fusion gives wrong results (see the module docstring).

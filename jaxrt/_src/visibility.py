@@ -40,8 +40,8 @@ import numpy as np
 from jax import lax
 
 from jaxrt._src.geometry import float_dtype
-from jaxrt._src.instances import apply_transform
 from jaxrt._src.ray import Ray
+from jaxrt._src.transforms import apply_transform
 
 __all__ = [
     "DirectionalLight",

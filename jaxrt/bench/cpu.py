@@ -73,9 +73,10 @@ def _query_call(query: str, backend: str, structure: Any, rays: rt.Ray) -> Calla
 def _kernel_call(structure: Any, intersector: rt.Intersector, rays: rt.Ray) -> Callable[[], Any]:
     """The compiled traversal alone on host arrays (the arguments the intersector's callback receives, and the
     structure's box rows, which a top-level call lays out once per structure)."""
+    from jaxrt._src.pipeline import cpu_kernel_arguments
     from jaxrt._src.traversal import cpu
 
-    params, arrays = cpu.kernel_arguments(structure, rays, intersector)
+    params, arrays = cpu_kernel_arguments(structure, rays, intersector)
     boxes = cpu.box_rows(arrays[0], arrays[1])
     return lambda: cpu._run(params, arrays, boxes)
 

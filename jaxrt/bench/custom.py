@@ -248,18 +248,20 @@ def query_path(intersector: rt.Intersector, structure: Any) -> str:
 @functools.partial(jax.jit, static_argnums=(0, 4))
 def _wave(intersector: rt.Intersector, structure: Any, rays: rt.Ray, state: Any, k: int) -> Any:
     """One candidate wave of ``k`` per ray (the first when ``state`` is ``None``)."""
+    from jaxrt._src.leaves import leaf_tester
     from jaxrt._src.scene_view import scene_view
     from jaxrt._src.traversal import waves
 
     view = scene_view(structure)
-    sanitized = pipeline.SanitizedRays(rays)
-    loop = waves.WaveLoop(intersector, view, sanitized, pipeline.wave_lister(intersector, view, sanitized))
+    sanitized = pipeline.sanitized_rays(rays)
+    lister = pipeline.wave_lister(intersector, view, sanitized)
+    loop = waves.WaveLoop(intersector, leaf_tester(intersector, view), sanitized, lister)
     return loop.wave(loop.initial() if state is None else state, k)
 
 
 def wave_counts(intersector: rt.Intersector, structure: Any, rays: rt.Ray, first: int, later: int) -> list[int]:
     """The rays still active before each candidate wave (:mod:`jaxrt._src.traversal.waves`), wave by wave."""
-    counts = [int(jnp.sum(pipeline.SanitizedRays(rays).enabled))]
+    counts = [int(jnp.sum(pipeline.sanitized_rays(rays).enabled))]
     state = _wave(intersector, structure, rays, None, first)
     while int(jnp.sum(state.active)) and len(counts) < 64:
         counts.append(int(jnp.sum(state.active)))

@@ -10,7 +10,7 @@ shadow rays to a point light for any hit. It times
 - ``kernel``: the Triton kernel alone on the structure's rows packed beforehand and on the ray arrays as given
   (``KernelOptions.fused_rays``; what a peer's query call does), per tree; ``--variants ray-block`` adds the
   kernel on a ray block packed beforehand, and ``intersect`` with the block packed in the call;
-- ``trace``: the kernel with the packing of nodes, triangles and rays (``traversal.gpu.trace``);
+- ``trace``: the kernel with the packing of nodes, triangles and rays (``pipeline.gpu_trace``);
 - ``intersect``: ``Intersector.intersect`` with the result fields (what users call);
 - ``portable``: ``Intersector(backend="portable")`` on the same device (``--portable-rays 0`` skips it);
 
@@ -362,7 +362,7 @@ def _bench_query(
             q["kernel"][quality][label] = k
             if label == "default":
                 q["leaf"][quality] = leaf
-    trace = jax.jit(lambda r, s: gpu.trace(s, **r, any_hit=any_hit, cull=0))
+    trace = jax.jit(lambda r, s: pipeline.gpu_trace(s, **r, any_hit=any_hit, cull=0))
     jax.block_until_ready(trace(rays, structure))
     q["trace"] = {
         "tree": first,

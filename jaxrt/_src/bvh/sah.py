@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["sah_cost"]
+__all__ = ["tree_cost"]
 
 
 def _area(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
@@ -26,39 +26,16 @@ def _area(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
     return 2.0 * (extent[..., 0] * extent[..., 1] + extent[..., 1] * extent[..., 2] + extent[..., 2] * extent[..., 0])
 
 
-def sah_cost(structure: Any) -> float:
-    """The SAH cost of a structure's own tree (see the module docstring), on the host in float64.
-
-    Args:
-      structure: a :class:`~jaxrt.PrimitiveAccelerationStructure`, or an
-        :class:`~jaxrt.InstanceAccelerationStructure` (the cost of its own tree over instance boxes).
-
-    Returns:
-      The cost, at least 1 for a non-empty tree (the root itself); padding and compaction do not change it.
+def tree_cost(node_lower: Any, node_upper: Any, node_children: Any) -> float:
+    """The SAH cost (see the module docstring) of a tree's node arrays, on the host in float64
+    (:func:`jaxrt.sah_cost` for a structure).
 
     Raises:
-      TypeError: ``structure`` is not an acceleration structure. ValueError: a batched structure, or one
-        whose root box is empty or has no area (every primitive a point or a segment along one axis).
-
-    Examples:
-      >>> import jaxrt as rt
-      >>> two = rt.TriangleGeometry([[0., 0, 0], [1, 0, 0], [0, 1, 0], [0., 0, 1], [1, 0, 1], [0, 1, 1]])
-      >>> round(rt.sah_cost(rt.build_primitive_structure(two)), 3)  # (root 6 + two flat leaves of 2) / 6
-      1.667
+      ValueError: batched arrays, or a root box that is empty or has no area.
     """
-    from jaxrt._src.instances import InstanceAccelerationStructure
-    from jaxrt._src.structures import PrimitiveAccelerationStructure
-
-    if isinstance(structure, InstanceAccelerationStructure):
-        structure = structure.root
-    elif not isinstance(structure, PrimitiveAccelerationStructure):
-        raise TypeError(
-            f"sah_cost: structure must be a PrimitiveAccelerationStructure or an InstanceAccelerationStructure, "
-            f"got {type(structure).__name__}"
-        )
-    lower = np.asarray(structure.node_lower, np.float64)
-    upper = np.asarray(structure.node_upper, np.float64)
-    children = np.asarray(structure.node_children)
+    lower = np.asarray(node_lower, np.float64)
+    upper = np.asarray(node_upper, np.float64)
+    children = np.asarray(node_children)
     if lower.ndim != 3:
         raise ValueError(f"sah_cost: structure is batched (node_lower has shape {lower.shape}); pass one structure")
     child_area = _area(lower, upper)  # (C-1, 2)

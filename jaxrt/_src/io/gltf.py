@@ -27,6 +27,11 @@ from typing import Any
 
 import numpy as np
 
+from jaxrt._src.geometry import TriangleGeometry
+from jaxrt._src.instances import Instances, build_instance_structure
+from jaxrt._src.prepacked import build_primitive_structure
+from jaxrt._src.transforms import SINGULAR_TOLERANCE
+
 __all__ = ["GltfScene", "load_gltf"]
 
 _COMPONENT = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
@@ -247,8 +252,6 @@ def _check_acyclic(gltf, roots: list[int]) -> None:
 
 
 def _is_invertible(matrix: np.ndarray) -> bool:
-    from jaxrt._src.instances import SINGULAR_TOLERANCE
-
     linear = matrix[:3, :3]
     scale = np.prod(np.linalg.norm(linear, axis=1))
     return bool(np.isfinite(matrix).all() and scale > 0 and abs(np.linalg.det(linear)) / scale >= SINGULAR_TOLERANCE)
@@ -264,8 +267,6 @@ def _instance_structure(entries: list[tuple[Any, np.ndarray]]):
     The padding instances lie past the build's ``count``, so they do not exist; padding lets structures of
     similar size share one compiled build.
     """
-    import jaxrt as rt
-
     structures: list[Any] = []
     index = []
     for structure, _ in entries:
@@ -279,7 +280,7 @@ def _instance_structure(entries: list[tuple[Any, np.ndarray]]):
     transform = np.tile(np.eye(3, 4, dtype=np.float32), (slots, 1, 1))
     transform[:n] = np.stack([m[:3] for _, m in entries]).astype(np.float32)
     index = np.asarray(index + [0] * (slots - n), np.int32)
-    return rt.build_instance_structure(structures, rt.Instances(index, transform), count=n)
+    return build_instance_structure(structures, Instances(index, transform), count=n)
 
 
 def load_gltf(path: str | os.PathLike[str], *, scene: int | None = None, hierarchy: bool = True) -> GltfScene:
@@ -310,7 +311,6 @@ def load_gltf(path: str | os.PathLike[str], *, scene: int | None = None, hierarc
         import pygltflib
     except ImportError as error:
         raise ImportError("load_gltf needs pygltflib; install it with `pip install 'jaxrt[gltf]'`") from error
-    import jaxrt as rt
 
     path = Path(path)
     if not path.is_file():
@@ -335,7 +335,7 @@ def load_gltf(path: str | os.PathLike[str], *, scene: int | None = None, hierarc
             if not parts:
                 return None
             mesh_triangles[m] = np.concatenate(parts)
-            meshes[m] = rt.build_primitive_structure([rt.TriangleGeometry(p.reshape(-1, 3)) for p in parts])
+            meshes[m] = build_primitive_structure([TriangleGeometry(p.reshape(-1, 3)) for p in parts])
         return meshes[m]
 
     placements: list[tuple[int, np.ndarray]] = []

@@ -19,6 +19,8 @@ from typing import Any
 
 import numpy as np
 
+from jaxrt._src.geometry import MotionTriangleGeometry, TriangleGeometry
+from jaxrt._src.instances import Instances, build_instance_structure
 from jaxrt._src.io.gltf import (
     _FAN,
     _STRIP,
@@ -29,6 +31,8 @@ from jaxrt._src.io.gltf import (
     _trs,
     primitive_faces,
 )
+from jaxrt._src.motion import MotionSpec
+from jaxrt._src.prepacked import build_primitive_structure
 
 __all__ = ["GltfMotion", "load_gltf_motion", "sample_channel"]
 
@@ -163,7 +167,6 @@ def load_gltf_motion(
         import pygltflib
     except ImportError as error:
         raise ImportError("load_gltf_motion needs pygltflib; install it with `pip install 'jaxrt[gltf]'`") from error
-    import jaxrt as rt
 
     owner = "load_gltf_motion"
     if isinstance(keyframes, bool) or not isinstance(keyframes, int) or keyframes < 2:
@@ -227,7 +230,7 @@ def load_gltf_motion(
     triangles: list[np.ndarray] = []
     structures: list[Any] = []
     cache: dict[Any, tuple[Any, np.ndarray]] = {}
-    spec = rt.MotionSpec(float(start), float(end))
+    spec = MotionSpec(float(start), float(end))
 
     def mesh_of(i: int):
         node = gltf.nodes[i]
@@ -245,10 +248,10 @@ def load_gltf_motion(
             if tri is None:
                 cache[key] = (None, None)
             elif morphing:
-                geometry = rt.MotionTriangleGeometry(tri.reshape(keyframes, -1, 3))
-                cache[key] = (rt.build_primitive_structure(geometry, motion=spec), tri)
+                geometry = MotionTriangleGeometry(tri.reshape(keyframes, -1, 3))
+                cache[key] = (build_primitive_structure(geometry, motion=spec), tri)
             else:
-                cache[key] = (rt.build_primitive_structure(rt.TriangleGeometry(tri[0].reshape(-1, 3))), tri)
+                cache[key] = (build_primitive_structure(TriangleGeometry(tri[0].reshape(-1, 3))), tri)
         return cache[key]
 
     def visit(i: int, world: np.ndarray) -> None:
@@ -277,5 +280,5 @@ def load_gltf_motion(
             distinct.append(s)
         index.append(position)
     transforms = np.stack([m[:, :3] for _, m in placements]).astype(np.float32)  # (N, K, 3, 4)
-    structure = rt.build_instance_structure(distinct, rt.Instances(index, transforms), motion=spec)
+    structure = build_instance_structure(distinct, Instances(index, transforms), motion=spec)
     return GltfMotion(structure, spec, times, tuple(placements), tuple(triangles), tuple(nodes))

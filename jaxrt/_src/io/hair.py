@@ -37,6 +37,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from jaxrt._src.curves import CurveGeometry
+
 __all__ = [
     "HairStrands",
     "HairCurves",
@@ -83,8 +85,6 @@ class HairCurves(NamedTuple):
 
     def geometry(self, **kwargs: Any):
         """A :class:`jaxrt.CurveGeometry` of these segments (``kwargs``: ``curve_type``, ``end_caps``, ...)."""
-        from jaxrt._src.curves import CurveGeometry
-
         return CurveGeometry(self.control_points, self.radii, self.indices, **self.options, **kwargs)
 
 

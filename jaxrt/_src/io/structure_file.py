@@ -36,7 +36,10 @@ import numpy as np
 
 from jaxrt._src.curves import CurveBasis, CurveEndCaps, CurveInfo, CurveType
 from jaxrt._src.instances import InstanceAccelerationStructure, InstanceTable
-from jaxrt._src.structures import GeometryInfo, PrimitiveAccelerationStructure, with_kernel_layout
+from jaxrt._src.kinds.registry import CURVE, KINDS
+from jaxrt._src.prepacked import with_kernel_layout
+from jaxrt._src.structures import GeometryInfo, PrimitiveAccelerationStructure
+from jaxrt._src.versions import VERSION
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "save", "load"]
 
@@ -44,7 +47,9 @@ FORMAT = "jaxrt.structure"
 #: The version this module writes and the only one it reads.
 FORMAT_VERSION = 1
 _HEADER = "header"
-_KINDS = ("triangle", "curve", "bounding_box")
+_KINDS = tuple(k.name for k in KINDS)
+#: The leaf arrays a structure has only with geometry of their kind, with that kind.
+_KIND_FIELDS = tuple((a.name, k.name) for k in KINDS for a in k.leaf_arrays if not a.shared)
 _PRIMITIVE_FIELDS = (
     "node_lower",
     "node_upper",
@@ -192,12 +197,10 @@ def save(
             fields[field] = f"t{j}.{field}"
             arrays[fields[field]] = _host_array(getattr(t, field), fields[field])
         table_headers.append({"arrays": fields})
-    import jaxrt
-
     header = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
-        "jaxrt_version": jaxrt.__version__,
+        "jaxrt_version": VERSION,
         "kind": kind,
         "primitive_structures": prim_headers,
         "instance_tables": table_headers,
@@ -341,7 +344,7 @@ def _geometry_info(spec: Any, where: str, reader: _Reader) -> GeometryInfo:
     if not isinstance(spec, dict) or spec.get("kind") not in _KINDS or not isinstance(spec.get("opaque"), bool):
         raise reader.error(f"has an invalid geometry description {spec!r} in {where}")
     curve = spec.get("curve")
-    if (spec["kind"] == "curve") != (curve is not None):
+    if (spec["kind"] == CURVE.name) != (curve is not None):
         raise reader.error(f"has a geometry description {spec!r} in {where} whose curve does not match its kind")
     return GeometryInfo(spec["kind"], spec["opaque"], None if curve is None else _curve_info(curve, where, reader))
 
@@ -437,7 +440,7 @@ def _primitive(spec: Any, i: int, arrays: dict, used: set, reader: _Reader) -> P
     _expect(reader, where, "leaf_primitive", a["leaf_primitive"], (capacity,), ("int32",))
     _expect(reader, where, "leaf_triangle", a["leaf_triangle"], (capacity, 3, 3), (float_dtype,))
     _expect(reader, where, "geometry_primitive_count", a["geometry_primitive_count"], (len(info),), ("int32",))
-    for field, kind in (("leaf_curve", "curve"), ("leaf_curve_flags", "curve"), ("leaf_box", "bounding_box")):
+    for field, kind in _KIND_FIELDS:
         if (field in a) != (kind in kinds):
             raise reader.error(
                 f"has {where}.{field} {'present' if field in a else 'missing'}, but its geometries are {sorted(kinds)}"

@@ -47,7 +47,7 @@ except ImportError:  # pragma: no cover - depends on the jax version
     _buffer_callback = None
 from jaxrt._src.primitives import box
 from jaxrt._src.traversal import packed
-from jaxrt._src.traversal.scene import TraversalLayout, TraversalResult, TraversalScene
+from jaxrt._src.traversal.scene import TraversalLayout, TraversalRays, TraversalResult, TraversalScene
 from jaxrt._src.traversal.step import HitList
 
 __all__ = ["constants", "host_scene", "kernel_arguments", "trace_scene", "unavailable_reason"]
@@ -291,9 +291,7 @@ def host_scene(structure: Any, rays: Any, *, with_rays: bool = True) -> tuple[np
     its argument buffers alive, and the traversal reads them only then. The box rows are an argument of that
     program themselves.
     """
-    from jaxrt._src.structures import PrimitiveAccelerationStructure
-
-    if type(structure) is not PrimitiveAccelerationStructure:
+    if structure.levels:  # an instance structure
         return None
     leaves = jax.tree_util.tree_leaves((structure, rays))
     if any(isinstance(x, jax.core.Tracer) for x in leaves):
@@ -389,29 +387,23 @@ def _arguments(scene: TraversalScene, origin, direction, t_min, t_max, enabled, 
     )
 
 
-def kernel_arguments(structure: Any, rays: Any, intersector: Any) -> tuple[tuple[int, ...], list[np.ndarray]]:
-    """``(params, arrays)`` for calling the compiled traversal directly on host arrays (outside ``jit``), as the
-    intersector's callback would for ``rays`` (a :class:`jaxrt.Ray` of shape ``(N,)``): for benchmarks."""
-    from jaxrt._src.pipeline import SanitizedRays
-    from jaxrt._src.scene_view import scene_view
-    from jaxrt._src.traversal import gpu
-
-    view = scene_view(structure)
-    ray = SanitizedRays(rays)
-    dtype = view.traversal.node_lower.dtype
-    analytic = gpu.analytic_leaves(intersector.intersection_functions, view, dtype)
-    params = _params(
-        view.layout,
-        intersector.accept_any_intersection,
-        intersector.cull,
-        0 if intersector.counts_all else intersector.max_hits,
-        intersector.counts_all,
-        analytic is not None,
-    )
+def kernel_arguments(
+    scene: TraversalScene,
+    layout: TraversalLayout,
+    rays: TraversalRays,
+    *,
+    any_hit: bool,
+    cull: int,
+    max_hits: int | None = None,
+    count_all: bool = False,
+    analytic: Any = None,
+) -> tuple[tuple[int, ...], list[np.ndarray]]:
+    """``(params, arrays)`` for calling the compiled traversal directly on host arrays (outside ``jit``), as
+    :func:`trace_scene` would for ``rays`` (the other arguments as there): for benchmarks
+    (:func:`jaxrt._src.pipeline.cpu_kernel_arguments`)."""
+    params = _params(layout, any_hit, cull, max_hits, count_all, analytic is not None)
     rows = None if analytic is None else analytic.rows
-    args = _arguments(
-        view.traversal, ray.origin, ray.direction, ray.t_min, ray.t_max, ray.enabled, ray.mask, lambda a: a, rows
-    )
+    args = _arguments(scene, *rays[:6], lambda a: a, rows)
     return params, [np.ascontiguousarray(a) for a in args]
 
 

@@ -3,7 +3,7 @@
 :func:`trace_scene` traces a :class:`~jaxrt._src.traversal.scene.TraversalScene` (any number of instance
 levels; a primitive structure is a scene of zero levels) and returns the
 :class:`~jaxrt._src.traversal.scene.TraversalResult` of the portable traversal: the same leaf, distance and
-instance chain. :func:`trace` is the same for a primitive structure.
+instance chain (:func:`jaxrt._src.pipeline.gpu_trace` is the same for a primitive structure).
 
 The intersector picks this path (``backend="auto"`` or ``"gpu"``) when :func:`unavailable_reason` returns
 ``None``: the default JAX backend is a GPU, Triton and jax-triton import (``pip install jaxrt[gpu]``), geometry
@@ -49,9 +49,11 @@ import numpy as np
 from jax import lax
 
 from jaxrt._src import numerics
+from jaxrt._src.kinds import registry
+from jaxrt._src.kinds.registry import BOUNDING_BOX, TRIANGLE
 from jaxrt._src.motion import KeyframePosition, spec_position
-from jaxrt._src.primitives import box
-from jaxrt._src.traversal import packed
+from jaxrt._src.primitives import analytic, box, curve
+from jaxrt._src.traversal import kernel_cache, packed
 from jaxrt._src.traversal.scene import TraversalLayout, TraversalResult, TraversalScene
 from jaxrt._src.traversal.step import HitList
 
@@ -62,28 +64,13 @@ __all__ = [
     "COVERED_TAGS",
     "MAX_PROGRAMS",
     "unavailable_reason",
-    "trace",
     "trace_scene",
     "analytic_leaves",
 ]
 
-#: Intersector tags whose fields the GPU path can produce (the intersector re-computes them from the leaf and
-#: the instance chain).
-COVERED_TAGS = frozenset(
-    {
-        "triangle_data",
-        "curve_data",
-        "normal",
-        "stats",
-        "primitive_data",
-        "instancing",
-        "max_levels",
-        "world_space_data",
-        "user_instance_id",
-        "primitive_motion",
-        "instance_motion",
-    }
-)
+#: Intersector tags whose fields the GPU path can produce: every tag (:data:`jaxrt._src.kinds.registry.RESULT_TAGS`),
+#: since the intersector re-computes the fields from the leaf and the instance chain.
+COVERED_TAGS = registry.RESULT_TAGS
 #: Most programs per launch; larger batches are walked with a stride, which bounds the scratch buffers (stack,
 #: and per-level rays below instances) to ``MAX_PROGRAMS * rays_per_program`` times the entries per ray.
 MAX_PROGRAMS = 1 << 15
@@ -357,7 +344,7 @@ def _launch(call: KernelCall) -> tuple[jax.Array, ...]:
     """Run one :class:`KernelCall` through jax-triton: ``(distance, leaf, visited, tested, overflow[, chain])``."""
     import jax_triton as jt
 
-    from jaxrt._src.traversal import kernel_cache, triton_kernel
+    from jaxrt._src.traversal import triton_kernel
 
     kernel_cache.install()
     out = jt.triton_call(
@@ -466,8 +453,6 @@ def _kernel(*args, config: _Config) -> tuple[jax.Array, ...]:
 def _curve_frames(origin: jax.Array, direction: jax.Array) -> jax.Array:
     """``(N, 10)``: each ray's :func:`~jaxrt._src.primitives.curve.curve_ray` frame row by row and ``1 / |d|``,
     computed by the portable test's own function."""
-    from jaxrt._src.primitives import curve
-
     ray = jax.vmap(curve.curve_ray)(origin, direction)
     return jnp.concatenate([ray.frame.reshape(-1, 9), ray.inv_length[:, None]], axis=-1)
 
@@ -569,8 +554,6 @@ def curve_leaves(view: Any, config: dict) -> CurveLeaves | None:
     """The :class:`CurveLeaves` of a :class:`~jaxrt._src.scene_view.SceneView` with the static curve code choices
     ``config`` (:func:`jaxrt._src.leaves.curve_configuration`), or ``None`` without curves: round and flat
     (ray-facing ribbon) curves, each with the portable ``curve.intersect`` test."""
-    from jaxrt._src.primitives import curve
-
     if view.leaves.curve is None:
         return None
     types = config["curve_types"]
@@ -640,13 +623,10 @@ def analytic_leaves(
       ValueError: a function that is not built-in (without ``candidates``), or primitive data without the
         fields a function reads.
     """
-    from jaxrt._src import leaves as leaf_tests
-    from jaxrt._src.primitives import analytic
-
-    if "bounding_box" not in view.kinds:
+    if BOUNDING_BOX.name not in view.kinds:
         return None
     codes = np.zeros(len(view.geometry_info) + 1, np.int32)  # by geometry index; the last entry: padding
-    shapes = 8 if "triangle" in view.kinds else 0
+    shapes = 8 if TRIANGLE.name in view.kinds else 0
     for index, fn in functions or ():
         code = analytic.shape_code(fn)
         if not code and not candidates:
@@ -657,7 +637,7 @@ def analytic_leaves(
         shapes |= 1 << (code - 1) if code != CANDIDATE_BOX else 16
     leaves = view.leaves
     count = leaves.geometry.shape[0]
-    is_box = view.leaf_flag(view.slot_table(leaf_tests.box_slots(view)), jnp.arange(count))
+    is_box = view.leaf_flag(view.slot_table(view.slots_where(BOUNDING_BOX.holds)), jnp.arange(count))
     geometry = jnp.where(leaves.geometry < 0, codes.shape[0] - 1, leaves.geometry)
     code = jnp.where(is_box, jnp.asarray(codes)[geometry], 0)
     data = jax.tree_util.tree_map(lax.stop_gradient, leaves.primitive_data)
@@ -862,29 +842,3 @@ def trace_scene(
 def _no_cursor(n: int) -> tuple[jax.Array, jax.Array]:
     """The cursor arguments of a call without one (every candidate is past it; not read by the kernel)."""
     return jnp.full((n,), -jnp.inf, jnp.float32), jnp.full((n,), -1, jnp.int32)
-
-
-def trace(
-    structure: Any,
-    origin: jax.Array,
-    direction: jax.Array,
-    t_min: jax.Array,
-    t_max: jax.Array,
-    enabled: jax.Array,
-    *,
-    any_hit: bool,
-    cull: int,
-    options: KernelOptions | None = None,
-) -> TraversalResult:
-    """:func:`trace_scene` for a :class:`~jaxrt.PrimitiveAccelerationStructure` (float32, triangles only),
-    every ray mask all ones."""
-    from jaxrt._src.scene_view import traversal_scene
-
-    kinds = sorted({g.kind for g in structure.geometry_info} - {"triangle"})
-    if kinds:
-        raise NotImplementedError(f"traversal.gpu.trace: geometry kinds {kinds} are not covered by the GPU kernel")
-    scene, layout = traversal_scene(structure)
-    mask = jnp.full(origin.shape[:1], 0xFFFFFFFF, jnp.uint32)
-    return trace_scene(
-        scene, layout, origin, direction, t_min, t_max, enabled, mask, any_hit=any_hit, cull=cull, options=options
-    )

@@ -21,7 +21,7 @@ from typing import Any, NamedTuple
 
 import jax
 
-__all__ = ["TraversalScene", "TraversalLayout", "TraversalResult"]
+__all__ = ["TraversalScene", "TraversalLayout", "TraversalRays", "TraversalResult"]
 
 
 class TraversalScene(NamedTuple):
@@ -50,6 +50,20 @@ class TraversalLayout(NamedTuple):
     stack_size: int  # entries of the traversal stack that can never overflow (see :func:`~jaxrt._src.bvh.radix_tree.tree_depth_bound`)
     motion: bool = False  # keyframe motion (primitives or instances): the traversal reads each ray's time
     node_spec: Any = None  # with ``node_motion``: the MotionSpec whose keyframes the node boxes follow
+
+
+class TraversalRays(NamedTuple):
+    """A flat batch of rays as the traversals read it (batch axis first), built once below the public
+    ``rt.Ray`` (:func:`jaxrt._src.pipeline.sanitized_rays`): a disabled ray holds harmless values (origin 0,
+    direction +z, interval [0, 0]) and is skipped."""
+
+    origin: jax.Array  # (N, 3) world space
+    direction: jax.Array  # (N, 3), never zero
+    t_min: jax.Array  # (N,) accepted distance interval
+    t_max: jax.Array  # (N,)
+    enabled: jax.Array  # (N,) bool: finite, non-zero direction, t_min <= t_max, mask not 0
+    mask: jax.Array  # (N,) uint32 ray mask
+    time: jax.Array  # (N,) read only by scenes with keyframe motion
 
 
 class TraversalResult(NamedTuple):

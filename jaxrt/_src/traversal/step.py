@@ -35,8 +35,10 @@ from typing import Any, NamedTuple, Protocol
 import jax
 import jax.numpy as jnp
 
+from jaxrt._src.motion import blend, keyframe_position, spec_position
 from jaxrt._src.numerics import safe_reciprocal
 from jaxrt._src.primitives.box import ray_box
+from jaxrt._src.transforms import instance_motion_at
 from jaxrt._src.traversal.scene import TraversalLayout, TraversalResult, TraversalScene
 
 __all__ = [
@@ -346,8 +348,6 @@ def _node_boxes_at(node_motion: Any, spec: Any, node: jax.Array, time: jax.Array
     """Node ``node``'s child boxes blended at ``time``. Each primitive blended at ``time`` lies in the blend of
     its keyframe boxes, which lies in the blend of the node's keyframe boxes (rounding is monotone, so also
     in floating point); equal corners (empty children, static geometry) are kept as they are."""
-    from jaxrt._src.motion import blend, spec_position
-
     lower_keys, upper_keys = node_motion
     p = spec_position(spec, lower_keys.shape[0], time)
 
@@ -360,8 +360,6 @@ def _node_boxes_at(node_motion: Any, spec: Any, node: jax.Array, time: jax.Array
 
 def _instance_visible(motion: Any, instance: jax.Array, time: jax.Array) -> jax.Array:
     """Whether instances exist at ``time`` (only moving ones on a ``"vanish"`` border can be absent)."""
-    from jaxrt._src.motion import keyframe_position
-
     position = keyframe_position(
         time,
         motion.count[instance],
@@ -399,8 +397,6 @@ def transition(scene: TraversalScene, tester: LeafTester, ray: RayConstants, s: 
     g = jnp.clip(-1 - s.node, 0, instances - 1)
     m = scene.instance_world_to_object[g]
     if scene.instance_motion is not None:  # the inverse of the transform blended at the ray's time
-        from jaxrt._src.instances import instance_motion_at
-
         _, moved, _, moving = instance_motion_at(scene.instance_motion, g, ray.time)
         m = jnp.where(moving, moved, m)
     # Elementwise products, not matmuls: a batched 3x3 dot is a slow library call on the CPU.

@@ -8,7 +8,7 @@ and JAX take turns, inside one ``lax.while_loop`` (no host round trip):
    says), built-in analytic hits, and the box leaves of user functions at the box's entry distance (the slab
    test's, clamped to ``t_min``). It is the kernel's ``max_hits = K`` list with the cursor test and a leaf
    tie order (``gpu.trace_scene(cursor=...)``).
-2. **Decide.** JAX runs the portable leaf tests (:func:`jaxrt._src.leaves.leaf_tester`: the watertight test
+2. **Decide.** JAX runs the portable leaf tests (the caller's tester, :func:`jaxrt._src.leaves.leaf_tester`: the watertight test
    and the filter on non-opaque triangles, each box's intersection function) on the ``K`` candidates of
    every ray at once, with the ray's current bound as ``max_distance``, and merges the accepted ones into
    the ray's hits (stable by distance: earlier candidates win ties, as the first hit found does in the
@@ -37,7 +37,8 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from jaxrt._src import leaves as leaf_tests
+from jaxrt._src.kinds import registry
+from jaxrt._src.kinds.bounding_box import builtin
 from jaxrt._src.traversal import step
 from jaxrt._src.traversal.scene import TraversalResult
 from jaxrt._src.traversal.step import HitList
@@ -68,25 +69,22 @@ CANDIDATES, LATER_CANDIDATES = _candidate_counts(os.environ.get("JAXRT_WAVE_CAND
 
 def covers(geometry_info: tuple, *, motion: bool = False, levels: int = 0) -> bool:
     """Whether the GPU kernel lists candidates for a scene of these geometries: a static (no keyframe motion,
-    ``motion`` nor any geometry's) primitive structure (``levels == 0``) without curves."""
-    moving = motion or any(g.motion for g in geometry_info)
-    return not levels and not moving and all(g.kind != "curve" for g in geometry_info)
+    ``motion`` nor any geometry's) primitive structure (``levels == 0``) whose kinds waves list
+    (:func:`jaxrt._src.kinds.registry.waves_cover`)."""
+    return registry.waves_cover(geometry_info, "gpu", motion=motion, levels=levels)
 
 
 def user_functions(intersector: Any) -> bool:
     """Whether some intersection function of ``intersector`` is user code (not a built-in shape)."""
-    from jaxrt._src.primitives import analytic
-
-    return any(not analytic.shape_code(fn) for _, fn in intersector.intersection_functions or ())
+    return any(not builtin(fn) for _, fn in intersector.intersection_functions or ())
 
 
 def needs_waves(intersector: Any, view: Any, *, filter_decided: bool = False) -> bool:
-    """Whether tracing ``view`` with ``intersector`` calls user code per candidate: a filter on non-opaque
-    triangles (unless ``filter_decided``: decided per primitive, :mod:`jaxrt._src.filter_states`), or a
-    bounding-box function that is not one of the built-in ``rt.intersection_functions``."""
-    if leaf_tests.filtered_slots(intersector, view) and not filter_decided:
-        return True
-    return "bounding_box" in view.kinds and user_functions(intersector)
+    """Whether tracing ``view`` with ``intersector`` calls user code per candidate
+    (:func:`jaxrt._src.kinds.registry.needs_jax`): a filter on non-opaque triangles (unless ``filter_decided``:
+    decided per primitive, :mod:`jaxrt._src.filter_states`), or a bounding-box function that is not one of the
+    built-in ``rt.intersection_functions``."""
+    return registry.needs_jax(intersector, view.geometry_info, filter_decided=filter_decided)
 
 
 class WaveState(NamedTuple):
@@ -104,10 +102,11 @@ class WaveState(NamedTuple):
 
 class WaveLoop:
     """One batch of rays in candidate waves: :meth:`initial`, :meth:`wave` (any number of times, each with
-    its own ``K``) and :meth:`result`; :func:`trace_waves` composes them."""
+    its own ``K``) and :meth:`result`; :func:`trace_waves` composes them. ``tester``: the portable leaf tests
+    of the scene (:func:`jaxrt._src.leaves.leaf_tester`), which take the decisions."""
 
-    def __init__(self, intersector: Any, view: Any, rays: Any, list_candidates: Callable):
-        self.tester = leaf_tests.leaf_tester(intersector, view)
+    def __init__(self, intersector: Any, tester: Any, rays: Any, list_candidates: Callable):
+        self.tester = tester
         self.origin, self.direction, self.t_min = (
             lax.stop_gradient(a) for a in (rays.origin, rays.direction, rays.t_min)
         )
@@ -202,26 +201,27 @@ class WaveLoop:
 
 def trace_waves(
     intersector: Any,
-    view: Any,
+    tester: Any,
     rays: Any,
     list_candidates: Callable,
     *,
     candidates: int,
     later: int,
 ) -> TraversalResult:
-    """The portable traversal's result for ``rays`` (a ``SanitizedRays``) through the primitive structure of
-    ``view``, in candidate waves: the first with ``candidates`` per ray, the rest (few rays) with ``later``.
+    """The portable traversal's result for ``rays`` (:class:`~jaxrt._src.traversal.scene.TraversalRays`) through a primitive structure, in
+    candidate waves: the first with ``candidates`` per ray, the rest (few rays) with ``later``.
 
     Args:
       intersector: its filter, intersection functions, cull mode and query (nearest, any, ``max_hits``,
         counting) decide.
-      view: the scene view (a primitive structure without keyframe motion).
+      tester: the portable leaf tests of the scene (a primitive structure without keyframe motion), which
+        take the decisions (:func:`jaxrt._src.leaves.leaf_tester`).
       rays: the flat ray batch.
       list_candidates: ``(K, t_max, enabled, cursor_t, cursor_leaf) -> TraversalResult`` whose ``hits`` are
         each ray's ``K`` first candidates past its cursor (the kernel's wave; ``K`` static).
       candidates, later: static ``K`` of the first wave and of the others.
     """
-    loop = WaveLoop(intersector, view, rays, list_candidates)
+    loop = WaveLoop(intersector, tester, rays, list_candidates)
     state = loop.wave(loop.initial(), candidates)
     state = lax.while_loop(lambda s: jnp.any(s.active), lambda s: loop.wave(s, later), state)
     return loop.result(state)

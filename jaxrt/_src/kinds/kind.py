@@ -1,0 +1,117 @@
+"""The record that defines a primitive kind (:class:`Kind`), and what one compiled traversal covers of it
+(:class:`Coverage`).
+
+A kind is one definition: its leaf arrays, its bounds, the traversal's exact test and the differentiable
+re-intersection behind the result fields, the tags it adds, the decisions that need JAX, and each compiled
+traversal's coverage. The modules of this package declare one kind each; :mod:`jaxrt._src.kinds.registry`
+lists them, and coverage, leaf packing, file formats and result assembly iterate over that list.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping
+from typing import Any
+
+__all__ = ["Coverage", "Kind", "LeafArray"]
+
+
+@dataclasses.dataclass(frozen=True)
+class LeafArray:
+    """One per-leaf array of a kind in a primitive structure (a row of the kind's layout table).
+
+    Attributes:
+      name: the field of :class:`~jaxrt._src.structures.PrimitiveAccelerationStructure` (and, without the
+        ``leaf_`` prefix, of :class:`~jaxrt._src.scene_view.LeafArrays`).
+      shape: the shape of one leaf's row.
+      dtype: ``"float"`` (the geometry's float type) or a NumPy type name.
+      fill: what rows of other kinds and of padding hold: ``"zeros"`` or ``"empty box"`` (``+inf`` lower,
+        ``-inf`` upper corner, so that no ray enters it).
+      keyframes: the field of the keyframed rows ``(K, C, *shape)`` with keyframe motion, or ``None`` when the
+        array does not move (flags).
+      doc: what a row holds.
+      shared: every primitive structure has the array, whatever its kinds (rows of other kinds hold the fill);
+        else only structures with geometry of the kind have it (``None`` otherwise).
+    """
+
+    name: str
+    shape: tuple[int, ...]
+    dtype: str
+    fill: str
+    keyframes: str | None
+    doc: str
+    shared: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
+class Coverage:
+    """What one compiled traversal (the GPU kernel, the CPU traversal) traces of a kind; the portable traversal
+    traces everything.
+
+    Attributes:
+      traced: the traversal tests the kind's leaves at all.
+      instanced: also below instances.
+      motion: also in a scene with keyframe motion (primitive or instance).
+      alone: not in one structure with another kind that is not a triangle.
+      waves: candidate waves (:mod:`jaxrt._src.traversal.waves`) list this kind's leaves, so that JAX can take
+        the decisions of user code on a scene that holds them.
+    """
+
+    traced: bool = True
+    instanced: bool = True
+    motion: bool = True
+    alone: bool = False
+    waves: bool = True
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Kind:
+    """One primitive kind (identity is equality: each kind is defined once, in its module).
+
+    Attributes:
+      name: the kind's name in :class:`~jaxrt._src.structures.GeometryInfo` and in saved files.
+      plural: how messages name its geometry ("curves"), and ``be`` the verb that agrees with it.
+      intersection_type: the value of ``rt.IntersectionType`` its hits report.
+      leaf_arrays: its per-leaf arrays (the layout table of its module's docstring).
+      bounds: ``row -> (lower, upper)``: the box of one leaf row (the first of ``leaf_arrays``).
+      intersect: the exact test the traversals make (JAX, batched over leaves).
+      reintersect: the differentiable test the result fields are computed from (``None``: the geometry's
+        intersection function, called again by the result fields).
+      closest_point: the point-to-primitive formula of point queries (``rt.closest_point``, winding numbers),
+        ``(point, row) -> closest point``; ``None``: point queries refuse the kind.
+      tags: the intersector tags whose fields the kind fills.
+      fields: the result fields the kind fills, each with the tag that asks for it.
+      coverage: by backend name (``"gpu"``, ``"cpu"``): what that compiled traversal traces of the kind.
+      function_code: ``(intersector, geometry_info, traversal, where) -> str | None``: why the compiled
+        ``traversal`` (its name, for the message; ``where`` qualifies it) hands the hits of the kind's
+        geometries among ``geometry_info`` to user intersection functions (``None``: it does not). Such a
+        decision needs JAX: the traversal hands it over in candidate waves, or leaves the scene to the portable
+        one.
+      filter_code: the same for user filters (decided per primitive instead where the filter reads only the
+        primitive, :mod:`jaxrt._src.filter_states`).
+      declines: ``(intersector, geometry_info, traversal) -> str | None``: what else of the kind no compiled
+        traversal takes, even in candidate waves (``None``: nothing).
+    """
+
+    name: str
+    plural: str
+    be: str
+    intersection_type: int
+    leaf_arrays: tuple[LeafArray, ...]
+    bounds: Callable[..., Any]
+    intersect: Callable[..., Any]
+    reintersect: Callable[..., Any] | None
+    closest_point: Callable[..., Any] | None
+    tags: tuple[str, ...]
+    fields: Mapping[str, str]
+    coverage: Mapping[str, Coverage]
+    function_code: Callable[[Any, tuple, str, str], str | None] | None = None
+    filter_code: Callable[[Any, tuple, str, str], str | None] | None = None
+    declines: Callable[[Any, tuple, str], str | None] | None = None
+
+    def holds(self, info: Any) -> bool:
+        """Whether the geometry described by ``info`` (a ``GeometryInfo`` or a geometry) is of this kind."""
+        return info.kind == self.name
+
+    def __repr__(self) -> str:
+        return f"Kind({self.name!r})"
