@@ -1,5 +1,8 @@
 """Shape from silhouettes: fit an ellipsoid's centre and radii to two silhouette images (optax, Adam).
 
+Needs the ``diff`` extra (optax, matplotlib) beyond the README's ``.[demo]`` environment:
+``pip install -e ".[diff]"``.
+
 The ellipsoid is a triangle mesh (a UV sphere scaled by three radii and moved to a centre), seen by two pinhole
 cameras (front and side). The images are silhouettes: 1 where a ray hits the mesh, 0 elsewhere, integrated over
 each pixel. Only the silhouettes carry the signal, so plain autodiff (the hit held fixed) has a zero gradient:
