@@ -69,6 +69,7 @@ def instance(module: str, backend: str) -> types.ModuleType:
     vocabulary = importlib.import_module(f"{__name__}.vocabulary")
     for op in vocabulary.__all__:
         setattr(target, op, getattr(ops, op))
+    target.__dict__.update(getattr(ops, "GLOBALS", {}))
     for key, value in list(target.__dict__.items()):
         if inspect.isfunction(value) and value.__code__.co_filename == filename:
             setattr(target, key, compiler(value))

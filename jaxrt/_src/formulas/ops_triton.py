@@ -11,12 +11,40 @@ import triton
 import triton.language as tl
 
 INF = tl.constexpr(float("inf"))
-select = tl.where
-minimum = tl.minimum
-maximum = tl.maximum
-absolute = tl.abs
-sqrt = tl.math.sqrt_rn
-div_rn = tl.math.div_rn
+#: Extra globals of a formula module instantiated for Triton: the interpreter (``TRITON_INTERPRET=1``) swaps
+#: ``triton.language``'s functions for its own through the jit function's globals, so every operation below
+#: reaches ``tl`` through a jit function (inlined by the compiler) rather than an alias bound at import.
+GLOBALS = {"tl": tl}
+
+
+@triton.jit
+def select(condition, a, b):
+    return tl.where(condition, a, b)
+
+
+@triton.jit
+def minimum(a, b):
+    return tl.minimum(a, b)
+
+
+@triton.jit
+def maximum(a, b):
+    return tl.maximum(a, b)
+
+
+@triton.jit
+def absolute(x):
+    return tl.abs(x)
+
+
+@triton.jit
+def sqrt(x):
+    return tl.math.sqrt_rn(x)
+
+
+@triton.jit
+def div_rn(a, b):
+    return tl.math.div_rn(a, b)
 
 
 @triton.jit

@@ -47,6 +47,11 @@ def _xyz(v: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
     return v[0], v[1], v[2]
 
 
+def _ray(ray: Any) -> tuple[jax.Array, ...]:
+    """The ray's origin, direction and interval, component by component."""
+    return (*_xyz(ray.origin), *_xyz(ray.direction), ray.min_distance, ray.max_distance)
+
+
 def _finish(ok: jax.Array, t: jax.Array) -> tuple[jax.Array, jax.Array]:
     return ok, jnp.where(ok, t, jnp.inf)
 
@@ -62,22 +67,13 @@ def sphere(ray: Any, candidate: Any) -> tuple[jax.Array, jax.Array]:
         radius = 0.5 * jnp.min(candidate.upper - candidate.lower)
     else:
         center, radius = _param(candidate, "center"), _param(candidate, "radius")
-    return _finish(
-        *_shapes.sphere(
-            *_xyz(center), radius, *_xyz(ray.origin), *_xyz(ray.direction), ray.min_distance, ray.max_distance
-        )
-    )
+    return _finish(*_shapes.sphere(*_xyz(center), radius, *_ray(ray)))
 
 
 def disk(ray: Any, candidate: Any) -> tuple[jax.Array, jax.Array]:
     """Ray/disk intersection (both faces); ``primitive_data`` keys ``center`` (3,), ``normal`` (3,), ``radius`` ()."""
     center, normal, radius = (_param(candidate, k) for k in ("center", "normal", "radius"))
-    return _finish(
-        *_shapes.disk(
-            *_xyz(center), *_xyz(normal), radius, *_xyz(ray.origin), *_xyz(ray.direction), ray.min_distance,
-            ray.max_distance,
-        )  # fmt: skip
-    )
+    return _finish(*_shapes.disk(*_xyz(center), *_xyz(normal), radius, *_ray(ray)))
 
 
 def capped_cylinder(ray: Any, candidate: Any) -> tuple[jax.Array, jax.Array]:
@@ -86,12 +82,7 @@ def capped_cylinder(ray: Any, candidate: Any) -> tuple[jax.Array, jax.Array]:
     The surface is the side wall between the two cap planes plus the two cap disks.
     """
     p0, p1, radius = (_param(candidate, k) for k in ("p0", "p1", "radius"))
-    return _finish(
-        *_shapes.capped_cylinder(
-            *_xyz(p0), *_xyz(p1), radius, *_xyz(ray.origin), *_xyz(ray.direction), ray.min_distance,
-            ray.max_distance,
-        )  # fmt: skip
-    )
+    return _finish(*_shapes.capped_cylinder(*_xyz(p0), *_xyz(p1), radius, *_ray(ray)))
 
 
 #: The compiled traversals' code of each built-in function (they call the same formulas); a box geometry with any other function is traced by the portable traversal.
