@@ -10,8 +10,10 @@ same way. The traversal order, and hence the chosen leaf among equally
 distant hits and the first accepted hit in any-hit mode, are those of the portable path wherever both compute
 the same values.
 
-Exactness: the kernel is compiled without floating-point contraction (no fused multiply-add), and the hit
-distance is a correctly rounded division (``div_rn``), so every value is the IEEE result of the formulas of
+Exactness: the slab test, the shear and the watertight test are the shared formulas of
+:mod:`jaxrt._src.formulas` (which the portable primitives also call) instantiated for Triton. The kernel is
+compiled without floating-point contraction (no fused multiply-add), and the hit distance is a correctly
+rounded division (``div_rn``), so every value is the IEEE result of the formulas of
 :mod:`jaxrt._src.primitives.triangle` and :mod:`jaxrt._src.primitives.box`. Rounding is monotonic, so each
 edge function ``round(a b) - round(c d)`` has the sign of the exact ``a b - c d`` or is zero (zero counts as
 inside): no ray passes between triangles that share an edge or a vertex. A contracted
