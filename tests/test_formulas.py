@@ -104,10 +104,10 @@ def _inputs() -> dict[tuple[str, str], tuple[np.ndarray, ...]]:
     lo = rng.normal(size=(n, 3)) * 3
     hi = lo + rng.random((n, 3)) * 2
     o = rng.normal(size=(n, 3)) * 3
-    d = rng.normal(size=(n, 3))
     lo[64:128] += 4.2e4
     hi[64:128] += 4.2e4
     o[64:128] += 4.2e4 + rng.normal(size=(64, 3))
+    d = (lo + hi) / 2 + rng.normal(size=(n, 3)) * 1.5 - o  # about half of the rays hit their box
     d[np.arange(128, 256), rng.integers(0, 3, 128)] = 0
     on_plane = np.arange(128, 192)
     o[on_plane, 1] = lo[on_plane, 1]  # on a slab plane, moving in it
@@ -448,6 +448,42 @@ def test_watertight_on_shared_edges_and_vertices(results):
         inside = c[backend][0][-3 * n_fan :].reshape(3, -1, 6)[:, interior]  # (fan, ray, triangle)
         assert inside.any(axis=2).all(), backend
         assert (inside.sum(axis=2) >= 2).any(), backend  # rays through shared edges hit both sides
+
+
+def test_numba_vector_slab_test_makes_the_formula_decisions(results):
+    """The Numba loop's vector slab test of a node's two boxes (``cpu_kernel._box_pair``, LLVM vector code on the
+    rows of ``box_rows``, for rays parallel to no axis) decides as the box formula, with the same entries: each
+    ray of the box inputs against its own box and the next ray's."""
+    import numba
+
+    from jaxrt._src.traversal import cpu_kernel
+
+    lo, hi, o, inv = (np.stack([results[("box", f"slab_axis:{a}")]["args"][i] for a in range(3)], 1) for i in range(4))
+    t_min, t_max = results[("box", "box_hit")]["args"][8:10]
+    ray = np.flatnonzero(np.all(np.abs(inv) < PARALLEL_RECIPROCAL, axis=1))  # the vector test's domain
+    pairs = np.stack([ray, np.roll(ray, -1)], 1)
+    rows = np.empty((len(ray), 12), F32)
+    cpu_kernel.box_rows(lo[pairs], hi[pairs], rows)
+
+    @numba.njit
+    def pair_test(rows, o, inv, t_min, t_max, out_hit, out_near):
+        flat = rows.reshape(-1)
+        for r in range(rows.shape[0]):
+            h0, n0, h1, n1 = cpu_kernel._box_pair(flat, np.uint64(12 * r), o[r, 0], o[r, 1], o[r, 2], inv[r, 0], inv[r, 1], inv[r, 2], t_min[r], t_max[r], np.float32(FAR_SCALE))  # fmt: skip
+            out_hit[r, 0], out_near[r, 0], out_hit[r, 1], out_near[r, 1] = h0, n0, h1, n1
+
+    got_hit = np.empty((len(ray), 2), bool)
+    got_near = np.empty((len(ray), 2), F32)
+    pair_test(rows, o[ray], inv[ray], t_min[ray], t_max[ray], got_hit, got_near)
+    box = formulas.instance("box", "jax")
+    for k in range(2):
+        b = pairs[:, k]
+        slabs = [np.asarray(x) for a in range(3) for x in jax.vmap(box.slab_distances)(lo[b, a], hi[b, a], o[ray, a], inv[ray, a])]  # fmt: skip
+        hit, near, _ = jax.vmap(box.box_hit, in_axes=(0,) * 10 + (None,))(*slabs, lo[b, 0], hi[b, 0], t_min[ray], t_max[ray], FAR_SCALE)  # fmt: skip
+        hit, near = np.asarray(hit), np.asarray(near)
+        _equal(got_hit[:, k], hit, f"box {k}: hit")
+        np.testing.assert_array_equal(got_near[hit, k], near[hit], err_msg=f"box {k}: entry")
+    assert 20 < got_hit[:, 0].sum() < len(ray) and got_hit[:, 1].any()  # the inputs exercise both outcomes
 
 
 def test_formulas_use_the_vocabulary_only():
