@@ -63,15 +63,16 @@ def absolute(x):
 
 
 def sqrt(x):
-    """The correctly rounded square root."""
+    """The correctly rounded square root (NaN below zero)."""
     return math.sqrt(x) if x >= 0 else math.nan
 
 
 def div_rn(a, b):
-    """The correctly rounded quotient ``a / b`` on every backend."""
-    if b == 0:
-        return math.copysign(math.inf, a) * math.copysign(1.0, b) if a == a and a != 0 else math.nan
-    return a / b
+    """The correctly rounded quotient ``a / b`` on every backend (IEEE: a zero divisor gives an infinity or NaN)."""
+    import numpy as np
+
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return float(np.float64(a) / np.float64(b))
 
 
 def div(a, b):
