@@ -225,7 +225,7 @@ def _watertight(ax, ay, z0, bx, by, z1, cx, cy, z2, t_min, t_max, cull, inf):
     distance is computed only for a triangle the ray passes through."""
     e0, e1, e2 = _edge_functions(ax, ay, bx, by, cx, cy)
     inside, det = _edges_inside(e0, e1, e2)
-    if not (inside and _facing_accepts(det, cull)):
+    if not inside or (cull != 0 and not _facing_accepts(det, cull)):  # cull 0 accepts every facing
         return False, inf
     t = _plane_distance(e0, e1, e2, z0, z1, z2, det)
     if _in_interval(t, t_min, t_max):
