@@ -55,6 +55,8 @@ def instance(module: str, backend: str) -> types.ModuleType:
     Returns a module holding every function of the formula's source, each compiled for the backend, and the
     backend's operations under the vocabulary's names. Cached: one instance per module and backend.
     """
+    if module not in FORMULAS:
+        raise ValueError(f"formulas.instance: module must be one of {FORMULAS}, got {module!r}")
     compiler = _compiler(backend)
     source_module = importlib.import_module(f"{__name__}.{module}")
     source = inspect.getsource(source_module)
