@@ -5,7 +5,8 @@ Each has the intersection-function signature ``fn(ray, candidate) -> (accept, di
 :class:`~jaxrt._src.candidate.BoundingBoxCandidate`. Shape parameters come from the candidate's
 ``primitive_data`` (a mapping with the keys each function names) or, where a function says so, from the box.
 All are differentiable in the ray and the parameters; an invalid configuration (a ray parallel to a disk,
-a miss) returns ``accept = False`` with no NaN in the distance or its gradient.
+a miss) returns ``accept = False`` with no NaN in the distance or its gradient. The formulas are those of
+:mod:`jaxrt._src.formulas.analytic`, which the compiled traversals share.
 
 References:
   Haines, Günther, Akenine-Möller, "Precision Improvements for Ray/Sphere Intersection", Ray Tracing Gems,
@@ -18,6 +19,10 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+
+from jaxrt._src import formulas
+
+_shapes = formulas.instance("analytic", "jax")
 
 __all__ = [
     "sphere",
@@ -38,19 +43,17 @@ def _param(candidate: Any, name: str) -> jax.Array:
     return data[name]
 
 
-def _nearest(ray: Any, *candidates: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, jax.Array]:
-    """The smallest valid distance in ``[ray.min_distance, ray.max_distance]`` among (valid, t) pairs."""
-    best_ok, best_t = jnp.zeros((), bool), jnp.full((), jnp.inf, ray.origin.dtype)
-    for ok, t in candidates:
-        ok = ok & (t >= ray.min_distance) & (t <= ray.max_distance)
-        take = ok & (t < best_t)
-        best_ok, best_t = best_ok | ok, jnp.where(take, t, best_t)
-    return best_ok, jnp.where(best_ok, best_t, jnp.inf)
+def _xyz(v: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    return v[0], v[1], v[2]
 
 
-def _safe(x: jax.Array, ok: jax.Array) -> jax.Array:
-    """``x`` where ``ok``, else 1 (keeps divisions and square roots finite on rejected branches)."""
-    return jnp.where(ok, x, 1.0)
+def _ray(ray: Any) -> tuple[jax.Array, ...]:
+    """The ray's origin, direction and interval, component by component."""
+    return (*_xyz(ray.origin), *_xyz(ray.direction), ray.min_distance, ray.max_distance)
+
+
+def _finish(ok: jax.Array, t: jax.Array) -> tuple[jax.Array, jax.Array]:
+    return ok, jnp.where(ok, t, jnp.inf)
 
 
 def sphere(ray: Any, candidate: Any) -> tuple[jax.Array, jax.Array]:
@@ -64,30 +67,13 @@ def sphere(ray: Any, candidate: Any) -> tuple[jax.Array, jax.Array]:
         radius = 0.5 * jnp.min(candidate.upper - candidate.lower)
     else:
         center, radius = _param(candidate, "center"), _param(candidate, "radius")
-    d = ray.direction
-    f = ray.origin - center
-    a = jnp.dot(d, d)
-    b = -jnp.dot(f, d)
-    closest = f + (b / a) * d  # the centre-to-ray vector at closest approach (RTG ch. 7)
-    disc = a * (radius * radius - jnp.dot(closest, closest))
-    ok = disc >= 0
-    q = b + jnp.where(b >= 0, 1.0, -1.0) * jnp.sqrt(_safe(disc, ok))
-    c = jnp.dot(f, f) - radius * radius
-    q_ok = ok & (q != 0)
-    t0 = c / _safe(q, q_ok)
-    t1 = q / a
-    return _nearest(ray, (q_ok, t0), (ok, t1))
+    return _finish(*_shapes.sphere(*_xyz(center), radius, *_ray(ray)))
 
 
 def disk(ray: Any, candidate: Any) -> tuple[jax.Array, jax.Array]:
     """Ray/disk intersection (both faces); ``primitive_data`` keys ``center`` (3,), ``normal`` (3,), ``radius`` ()."""
     center, normal, radius = (_param(candidate, k) for k in ("center", "normal", "radius"))
-    denom = jnp.dot(ray.direction, normal)
-    ok = denom != 0
-    t = jnp.dot(center - ray.origin, normal) / _safe(denom, ok)
-    offset = ray.origin + t * ray.direction - center
-    inside = jnp.dot(offset, offset) <= radius * radius
-    return _nearest(ray, (ok & inside, t))
+    return _finish(*_shapes.disk(*_xyz(center), *_xyz(normal), radius, *_ray(ray)))
 
 
 def capped_cylinder(ray: Any, candidate: Any) -> tuple[jax.Array, jax.Array]:
@@ -96,37 +82,10 @@ def capped_cylinder(ray: Any, candidate: Any) -> tuple[jax.Array, jax.Array]:
     The surface is the side wall between the two cap planes plus the two cap disks.
     """
     p0, p1, radius = (_param(candidate, k) for k in ("p0", "p1", "radius"))
-    axis = p1 - p0
-    length2 = jnp.dot(axis, axis)
-    oc = ray.origin - p0
-    d = ray.direction
-    # Project out the axis component (scaled by length2 to avoid a division): |oc_perp + t d_perp|^2 = r^2.
-    d_along, oc_along = jnp.dot(d, axis), jnp.dot(oc, axis)
-    d_perp = d * length2 - axis * d_along
-    oc_perp = oc * length2 - axis * oc_along
-    a = jnp.dot(d_perp, d_perp)
-    b = jnp.dot(oc_perp, d_perp)
-    c = jnp.dot(oc_perp, oc_perp) - radius * radius * length2 * length2
-    disc = b * b - a * c
-    wall_ok = (a > 0) & (disc >= 0)
-    root = jnp.sqrt(_safe(disc, wall_ok))
-    a_safe = _safe(a, wall_ok)
-    walls = []
-    for sign in (-1.0, 1.0):
-        t = (-b + sign * root) / a_safe
-        along = oc_along + t * d_along
-        walls.append((wall_ok & (along >= 0) & (along <= length2), t))
-    caps = []
-    cap_ok = d_along != 0
-    for target in (0.0, 1.0):
-        t = (target * length2 - oc_along) / _safe(d_along, cap_ok)
-        radial = oc_perp + t * d_perp
-        caps.append((cap_ok & (jnp.dot(radial, radial) <= radius * radius * length2 * length2), t))
-    return _nearest(ray, *walls, *caps)
+    return _finish(*_shapes.capped_cylinder(*_xyz(p0), *_xyz(p1), radius, *_ray(ray)))
 
 
-#: The GPU kernel's code of each built-in function (:mod:`jaxrt._src.traversal.triton_analytic` repeats
-#: their formulas); a box geometry with any other function is traced by the portable traversal.
+#: The compiled traversals' code of each built-in function (they call the same formulas); a box geometry with any other function is traced by the portable traversal.
 SHAPE_CODES = {sphere: 1, disk: 2, capped_cylinder: 3}
 
 

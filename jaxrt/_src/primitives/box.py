@@ -10,9 +10,11 @@ starting on a slab plane produce no NaN.
 from __future__ import annotations
 
 import jax
-import jax.numpy as jnp
 
+from jaxrt._src import formulas
 from jaxrt._src.numerics import RECIPROCAL_CLAMP, gamma
+
+_box = formulas.instance("box", "jax")
 
 FAR_SCALE = 1.0 + 2.0 * gamma(3)
 #: Reciprocals at least this large come from clamped (zero) direction components (see ``safe_reciprocal``).
@@ -24,6 +26,9 @@ def ray_box(
 ) -> tuple[jax.Array, jax.Array]:
     """Whether a ray overlaps boxes within ``[t_min, t_max]``, and the entry distance.
 
+    The formulas of :mod:`jaxrt._src.formulas.box` (shared with the compiled traversals), elementwise over the
+    boxes.
+
     Args:
       origin, inv_direction: ``(3,)`` ray origin and safe reciprocal direction.
       t_min, t_max: scalars, the ray's distance interval.
@@ -32,17 +37,10 @@ def ray_box(
     Returns:
       ``hit`` (bool) and ``t_near`` (entry distance, clamped to ``t_min``), both of shape ``(...)``.
     """
-    t0 = (lower - origin) * inv_direction
-    t1 = (upper - origin) * inv_direction
-    # A zero direction component (its reciprocal clamped) keeps the ray at one coordinate: the slab holds all
-    # of the ray when the origin is in [lower, upper], boundary included, and none of it otherwise. The
-    # clamped reciprocal alone would make a ray lying in a slab plane leave the slab at t = 0 (it acts like
-    # a tiny component of the zero's sign), and miss primitives on that face of the box.
-    parallel = jnp.abs(inv_direction) >= PARALLEL_RECIPROCAL
-    inside = (lower <= origin) & (origin <= upper)
-    near = jnp.where(parallel, jnp.where(inside, -jnp.inf, jnp.inf), jnp.minimum(t0, t1))
-    far = jnp.where(parallel, jnp.where(inside, jnp.inf, -jnp.inf), jnp.maximum(t0, t1))
-    t_near = jnp.maximum(jnp.max(near, axis=-1), t_min)
-    t_far = jnp.minimum(jnp.min(far, axis=-1) * FAR_SCALE, t_max)
-    # An empty box (lower > upper) would pass the slab test: its slabs swap to (-inf, inf).
-    return (t_near <= t_far) & (lower[..., 0] <= upper[..., 0]), t_near
+    slabs = []
+    for axis in range(3):
+        slabs += _box.slab_axis(
+            lower[..., axis], upper[..., axis], origin[..., axis], inv_direction[..., axis], PARALLEL_RECIPROCAL
+        )
+    hit, t_near, _ = _box.box_hit(*slabs, lower[..., 0], upper[..., 0], t_min, t_max, FAR_SCALE)
+    return hit, t_near

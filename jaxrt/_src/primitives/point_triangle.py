@@ -16,6 +16,10 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from jaxrt._src import formulas
+
+_formula = formulas.instance("point_triangle", "jax")
+
 __all__ = ["closest_on_triangle", "closest_on_box", "solid_angle", "squared_box_distance"]
 
 
@@ -23,60 +27,15 @@ def _dot(a: jax.Array, b: jax.Array) -> jax.Array:
     return jnp.sum(a * b, axis=-1)
 
 
-def _ratio(num: jax.Array, den: jax.Array) -> jax.Array:
-    """``num / den`` clamped to ``[0, 1]``, and 0 where ``den`` is 0 (no NaN value or gradient)."""
-    ok = den != 0
-    return jnp.clip(jnp.where(ok, num / jnp.where(ok, den, 1), 0), 0, 1)
-
-
 def closest_on_triangle(p: jax.Array, tri: jax.Array) -> tuple[jax.Array, jax.Array]:
     """The barycentrics ``(u, v)`` of the point of triangle ``tri (3, 3)`` closest to ``p (3,)``.
 
-    The point itself is ``(1 - u - v) * tri[0] + u * tri[1] + v * tri[2]``; both differentiate with respect
-    to ``p`` and ``tri`` within the point's Voronoi region.
+    The formula of :mod:`jaxrt._src.formulas.point_triangle`. The point itself is
+    ``(1 - u - v) * tri[0] + u * tri[1] + v * tri[2]``; both differentiate with respect to ``p`` and ``tri``
+    within the point's Voronoi region.
     """
-    a, b, c = tri[0], tri[1], tri[2]
-    ab, ac = b - a, c - a
-    ap, bp, cp = p - a, p - b, p - c
-    d1, d2 = _dot(ab, ap), _dot(ac, ap)
-    d3, d4 = _dot(ab, bp), _dot(ac, bp)
-    d5, d6 = _dot(ab, cp), _dot(ac, cp)
-    # Signed areas (times |n|^2) of the sub-triangles opposite each vertex (Ericson 5.1.5).
-    vc = d1 * d4 - d3 * d2
-    vb = d5 * d2 - d1 * d6
-    va = d3 * d6 - d5 * d4
-    in_a = (d1 <= 0) & (d2 <= 0)
-    in_b = (d3 >= 0) & (d4 <= d3)
-    in_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-    in_c = (d6 >= 0) & (d5 <= d6)
-    in_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-    in_bc = (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)
-    t_ab = _ratio(d1, d1 - d3)
-    t_ac = _ratio(d2, d2 - d6)
-    t_bc = _ratio(d4 - d3, (d4 - d3) + (d5 - d6))
-    area = va + vb + vc
-    face_ok = area > 0
-    safe_area = jnp.where(face_ok, area, 1)
-    face_u = jnp.where(face_ok, vb / safe_area, 0)
-    face_v = jnp.where(face_ok, vc / safe_area, 0)
-    zero = jnp.zeros_like(d1)
-    one = jnp.ones_like(d1)
-    # The regions in Ericson's order: the first that holds wins.
-    u = jnp.where(
-        in_a,
-        zero,
-        jnp.where(
-            in_b,
-            one,
-            jnp.where(in_ab, t_ab, jnp.where(in_c, zero, jnp.where(in_ac, zero, jnp.where(in_bc, 1 - t_bc, face_u)))),
-        ),
-    )
-    v = jnp.where(
-        in_a | in_b | in_ab,
-        zero,
-        jnp.where(in_c, one, jnp.where(in_ac, t_ac, jnp.where(in_bc, t_bc, face_v))),
-    )
-    return u, v
+    coordinates = [p[..., i] for i in range(3)] + [tri[..., k, i] for k in range(3) for i in range(3)]
+    return _formula.closest_on_triangle(*coordinates)
 
 
 def triangle_point(tri: jax.Array, u: jax.Array, v: jax.Array) -> jax.Array:

@@ -1,6 +1,7 @@
 """Ray/triangle intersection: the watertight test for traversal, a smooth one for gradients.
 
-Reference: Woop, Benthin, Wald, "Watertight Ray/Triangle Intersection", JCGT 2(1), 2013. The ray is sheared so
+Reference: Woop, Benthin, Wald, "Watertight Ray/Triangle Intersection", JCGT 2(1), 2013 (the formulas are
+those of :mod:`jaxrt._src.formulas.triangle`, which the compiled traversals share). The ray is sheared so
 that it runs along +z through the origin; the three 2D edge functions are then computed from the vertices
 alone, so an edge shared by two triangles gives the same value (with opposite sign) in both and no ray passes
 between them. Zero edge functions count as inside, so a ray through an edge or vertex hits (rather than
@@ -16,7 +17,10 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jax import lax
+
+from jaxrt._src import formulas
+
+_tri = formulas.instance("triangle", "jax")
 
 
 class ShearedRay(NamedTuple):
@@ -36,16 +40,9 @@ def _component(v: jax.Array, k: jax.Array) -> jax.Array:
 
 def shear_ray(origin: jax.Array, direction: jax.Array) -> ShearedRay:
     """Precompute the axis permutation and shear for one ray (``direction`` must be non-zero)."""
-    a = jnp.abs(direction)
-    kz = jnp.where(a[0] >= a[1], jnp.where(a[0] >= a[2], 0, 2), jnp.where(a[1] >= a[2], 1, 2)).astype(jnp.int32)
-    kx = (kz + 1) % 3
-    ky = (kx + 1) % 3
-    dz = _component(direction, kz)
-    # Swap kx and ky when the dominant component is negative, to keep the winding of the triangle.
-    kx, ky = jnp.where(dz < 0, ky, kx), jnp.where(dz < 0, kx, ky)
-    dz_safe = jnp.where(dz == 0, 1.0, dz)
-    shear = jnp.stack([_component(direction, kx) / dz_safe, _component(direction, ky) / dz_safe, 1.0 / dz_safe])
-    return ShearedRay(origin, kx, ky, kz, shear)
+    kx, ky, kz = (jnp.asarray(k).astype(jnp.int32) for k in _tri.shear_axes(*direction))
+    shear = _tri.shear(_component(direction, kx), _component(direction, ky), _component(direction, kz))
+    return ShearedRay(origin, kx, ky, kz, jnp.stack(shear))
 
 
 class TriangleHit(NamedTuple):
@@ -67,26 +64,24 @@ def _product(a: jax.Array, b: jax.Array) -> jax.Array:
     no-op that the compiler removes. Rounding to 22 bits (23 for float64's 52) cannot be removed, is still
     monotonic, and costs a bit of precision in the barycentrics only.
     """
-    info = jnp.finfo(a.dtype)
-    return lax.reduce_precision(a * b, exponent_bits=info.nexp, mantissa_bits=info.nmant - 1)
+    return _tri.rounded_product(a, b)
 
 
 def _edge_functions(ray: ShearedRay, vertices: jax.Array):
     """Woop et al.'s sheared 2D edge functions (weights of v0, v1, v2) and the sheared z of each vertex."""
     rel = vertices - ray.origin
-    az = _component(rel, ray.kz)
-    px = _component(rel, ray.kx) - ray.shear[0] * az
-    py = _component(rel, ray.ky) - ray.shear[1] * az
-    ax, bx, cx = px[..., 0], px[..., 1], px[..., 2]
-    ay, by, cy = py[..., 0], py[..., 1], py[..., 2]
-    e0 = _product(cx, by) - _product(cy, bx)
-    e1 = _product(ax, cy) - _product(ay, cx)
-    e2 = _product(bx, ay) - _product(by, ax)
-    return e0, e1, e2, ray.shear[2] * az
+    px, py, pz = _tri.sheared_vertex(
+        _component(rel, ray.kx), _component(rel, ray.ky), _component(rel, ray.kz), *ray.shear
+    )
+    e0, e1, e2 = _tri.edge_functions(px[..., 0], py[..., 0], px[..., 1], py[..., 1], px[..., 2], py[..., 2])
+    return e0, e1, e2, pz
 
 
 def watertight(ray: ShearedRay, t_min: jax.Array, t_max: jax.Array, vertices: jax.Array, cull: int = 0) -> TriangleHit:
     """Watertight test of one ray against triangles ``vertices`` of shape ``(..., 3, 3)``.
+
+    The formulas of :mod:`jaxrt._src.formulas.triangle` (shared with the compiled traversals), elementwise over
+    the triangles.
 
     Args:
       ray: from :func:`shear_ray`.
@@ -99,19 +94,13 @@ def watertight(ray: ShearedRay, t_min: jax.Array, t_max: jax.Array, vertices: ja
       misses are ``inf``, their barycentrics 0.
     """
     e0, e1, e2, sz = _edge_functions(ray, vertices)
-    negative = (e0 < 0) | (e1 < 0) | (e2 < 0)
-    positive = (e0 > 0) | (e1 > 0) | (e2 > 0)
-    det = e0 + e1 + e2
-    inside = ~(negative & positive) & (det != 0)
+    inside, det = _tri.edges_inside(e0, e1, e2)
     clockwise = det < 0
-    if cull == 1:
-        inside &= ~clockwise
-    elif cull == -1:
-        inside &= clockwise
-    t_scaled = e0 * sz[..., 0] + e1 * sz[..., 1] + e2 * sz[..., 2]
+    if cull != 0:
+        inside &= _tri.facing_accepts(det, cull)
+    distance = _tri.plane_distance(e0, e1, e2, sz[..., 0], sz[..., 1], sz[..., 2], det)
     det_safe = jnp.where(det == 0, 1.0, det)
-    distance = t_scaled / det_safe
-    hit = inside & (distance >= t_min) & (distance <= t_max)
+    hit = inside & _tri.in_interval(distance, t_min, t_max)
     return TriangleHit(
         hit=hit,
         distance=jnp.where(hit, distance, jnp.inf),

@@ -13,16 +13,24 @@ with a nearest or any-hit query (no instance, hit-list or analytic bookkeeping p
 child boxes of a node in one vector slab test (:func:`_box_pair`, on the node rows of :func:`box_rows`) for rays
 parallel to no axis.
 
+The leaf and box tests are the shared formulas of :mod:`jaxrt._src.formulas` (slab test, shear, watertight
+triangle, analytic shapes) instantiated for Numba; this module holds the loop and the memory layout around them.
+
 Same decisions to the bit: every value the portable path compares is computed here with the same float
-operations, in the same order and precision (the geometry's dtype). Two details make that hold:
+operations, in the same order and precision (the geometry's dtype). Two details make that hold (both in
+:mod:`jaxrt._src.formulas.ops_numba`):
 
 - XLA's CPU backend contracts a multiply feeding an add into one fused multiply-add. Where the portable path's
-  expressions are contracted (the sheared vertex coordinates ``p - s * z``, and the scaled distance
-  ``e0 z0 + e1 z1 + e2 z2``), this module calls ``llvm.fma`` explicitly; elsewhere it leaves products
-  unfused (Numba does not contract: ``fastmath=False``).
+  expressions are contracted (the sheared vertex coordinates ``p - s * z``, the scaled distance
+  ``e0 z0 + e1 z1 + e2 z2``, and the instance transition's rows here), ``llvm.fma`` is called explicitly;
+  elsewhere products stay unfused (Numba does not contract: ``fastmath=False``).
 - The edge functions' products are rounded to one mantissa bit less than the float has, as
   :func:`jaxrt._src.primitives.triangle._product` does with ``lax.reduce_precision`` (round to nearest even,
   NaN kept), so that no fused multiply-add can change an edge function's sign.
+
+The formulas are compiled into this module's functions, whose machine code Numba caches on disk keyed by this
+file; :func:`jaxrt._src.formulas.ops_numba.key_caches_on_formulas` adds the formulas' source to the key, so
+an edited formula recompiles the traversal.
 """
 
 from __future__ import annotations
@@ -32,6 +40,27 @@ import numpy as np
 from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
+
+from jaxrt._src import formulas
+from jaxrt._src.formulas.ops_numba import fma as _fma
+from jaxrt._src.formulas.ops_numba import key_caches_on_formulas
+
+_box_f = formulas.instance("box", "numba")
+_slab_axis = _box_f.slab_axis
+_box_hit = _box_f.box_hit
+_tri = formulas.instance("triangle", "numba")
+_shear_axes = _tri.shear_axes
+_shear = _tri.shear
+_sheared_vertex = _tri.sheared_vertex
+_edge_functions = _tri.edge_functions
+_edges_inside = _tri.edges_inside
+_facing_accepts = _tri.facing_accepts
+_plane_distance = _tri.plane_distance
+_in_interval = _tri.in_interval
+_shapes = formulas.instance("analytic", "numba")
+_sphere = _shapes.sphere
+_disk = _shapes.disk
+_capped_cylinder = _shapes.capped_cylinder
 
 __all__ = ["trace_flat", "trace_rays"]
 
@@ -46,40 +75,6 @@ _U7 = np.uint64(7)
 _U8 = np.uint64(8)
 _U9 = np.uint64(9)
 _U12 = np.uint64(12)
-
-
-@intrinsic
-def _fma(typingctx, a, b, c):
-    """``a * b + c`` rounded once (``llvm.fma``)."""
-    sig = a(a, a, a)
-
-    def codegen(context, builder, signature, args):
-        ty = args[0].type
-        name = "llvm.fma.f32" if ty == ir.FloatType() else "llvm.fma.f64"
-        fn = builder.module.declare_intrinsic(name, [ty], ir.FunctionType(ty, [ty, ty, ty]))
-        return builder.call(fn, args)
-
-    return sig, codegen
-
-
-@intrinsic
-def _rounded_product(typingctx, a, b):
-    """``a * b`` rounded to one mantissa bit less, to nearest even (XLA's ``reduce_precision``); NaN kept."""
-    sig = a(a, a)
-
-    def codegen(context, builder, signature, args):
-        ty = args[0].type
-        bits = 32 if ty == ir.FloatType() else 64
-        it = ir.IntType(bits)
-        product = builder.fmul(args[0], args[1])
-        x = builder.bitcast(product, it)
-        last = builder.lshr(builder.and_(x, ir.Constant(it, 2)), ir.Constant(it, 1))
-        rounded = builder.and_(builder.add(x, last), ir.Constant(it, ~1 & ((1 << bits) - 1)))
-        out = builder.bitcast(rounded, ty)
-        is_nan = builder.fcmp_unordered("uno", product, product)
-        return builder.select(is_nan, product, out)
-
-    return sig, codegen
 
 
 @intrinsic
@@ -201,73 +196,39 @@ def _load(o0, o1, o2, d0, d1, d2, one, clamp, huge, clamped_huge):
     i0 = _reciprocal(d0, clamp, huge, clamped_huge, one)
     i1 = _reciprocal(d1, clamp, huge, clamped_huge, one)
     i2 = _reciprocal(d2, clamp, huge, clamped_huge, one)
-    a0, a1, a2 = abs(d0), abs(d1), abs(d2)
-    if a0 >= a1:
-        kz = 0 if a0 >= a2 else 2
-    else:
-        kz = 1 if a1 >= a2 else 2
-    kx = (kz + 1) % 3
-    ky = (kx + 1) % 3
-    dz = _pick(kz, d0, d1, d2)
-    if dz < 0:
-        kx, ky = ky, kx
-    dz_safe = one if dz == 0 else dz
-    sx = _pick(kx, d0, d1, d2) / dz_safe
-    sy = _pick(ky, d0, d1, d2) / dz_safe
-    sz = one / dz_safe
+    kx, ky, kz = _shear_axes(d0, d1, d2)
+    sx, sy, sz = _shear(_pick(kx, d0, d1, d2), _pick(ky, d0, d1, d2), _pick(kz, d0, d1, d2))
     return i0, i1, i2, kx, ky, kz, sx, sy, sz
 
 
 @numba.njit(cache=True)
-def _slab(o, inv, lo, hi, parallel, inf):
-    """One axis of the slab test: ``(near, far)``. A clamped (parallel) component keeps the ray at one
-    coordinate: all of the slab or none of it."""
-    if abs(inv) >= parallel:
-        inside = lo <= o and o <= hi
-        return (-inf, inf) if inside else (inf, -inf)
-    t0 = (lo - o) * inv
-    t1 = (hi - o) * inv
-    return min(t0, t1), max(t0, t1)
-
-
-@numba.njit(cache=True)
 def _box(lx, ly, lz, hx, hy, hz, o0, o1, o2, i0, i1, i2, t_min, t_max, far_scale, parallel, inf):
-    """The conservative slab test of a box (:func:`jaxrt._src.primitives.box.ray_box`): ``(hit, t_near)``."""
-    n0, f0 = _slab(o0, i0, lx, hx, parallel, inf)
-    n1, f1 = _slab(o1, i1, ly, hy, parallel, inf)
-    n2, f2 = _slab(o2, i2, lz, hz, parallel, inf)
-    t_near = max(max(max(n0, n1), n2), t_min)
-    t_far = min(min(min(f0, f1), f2) * far_scale, t_max)
-    return (t_near <= t_far) and (lx <= hx), t_near
+    """The conservative slab test of a box (the formulas of :mod:`jaxrt._src.formulas.box`): ``(hit, t_near)``."""
+    n0, f0 = _slab_axis(lx, hx, o0, i0, parallel)
+    n1, f1 = _slab_axis(ly, hy, o1, i1, parallel)
+    n2, f2 = _slab_axis(lz, hz, o2, i2, parallel)
+    hit, t_near, _ = _box_hit(n0, f0, n1, f1, n2, f2, lx, hx, t_min, t_max, far_scale)
+    return hit, t_near
 
 
 @numba.njit(cache=True)
 def _sheared(x, y, z, o0, o1, o2, kx, ky, kz, sx, sy, sz):
     """A vertex relative to the origin, sheared: ``(px, py, z)``."""
     r0, r1, r2 = x - o0, y - o1, z - o2
-    az = _pick(kz, r0, r1, r2)
-    # XLA contracts ``p - s * z`` into one fused multiply-add: so does this.
-    return _fma(-sx, az, _pick(kx, r0, r1, r2)), _fma(-sy, az, _pick(ky, r0, r1, r2)), sz * az
+    return _sheared_vertex(_pick(kx, r0, r1, r2), _pick(ky, r0, r1, r2), _pick(kz, r0, r1, r2), sx, sy, sz)
 
 
 @numba.njit(cache=True, inline="always")
 def _watertight(ax, ay, z0, bx, by, z1, cx, cy, z2, t_min, t_max, cull, inf):
     """The watertight test's edge functions, culling and distance on the sheared vertices ``(x, y, z)`` of a
-    triangle (cull sense ``cull``: +1 culls clockwise, -1 counterclockwise): ``(accepted, distance)``."""
-    e0 = _rounded_product(cx, by) - _rounded_product(cy, bx)
-    e1 = _rounded_product(ax, cy) - _rounded_product(ay, cx)
-    e2 = _rounded_product(bx, ay) - _rounded_product(by, ax)
-    negative = e0 < 0 or e1 < 0 or e2 < 0
-    positive = e0 > 0 or e1 > 0 or e2 > 0
-    det = e0 + e1 + e2
-    if (negative and positive) or det == 0:
+    triangle (cull sense ``cull``: +1 culls clockwise, -1 counterclockwise): ``(accepted, distance)``; the
+    distance is computed only for a triangle the ray passes through."""
+    e0, e1, e2 = _edge_functions(ax, ay, bx, by, cx, cy)
+    inside, det = _edges_inside(e0, e1, e2)
+    if not inside or (cull != 0 and not _facing_accepts(det, cull)):  # cull 0 accepts every facing
         return False, inf
-    clockwise = det < 0
-    if (cull > 0 and clockwise) or (cull < 0 and not clockwise):
-        return False, inf
-    # XLA contracts e0 z0 + e1 z1 + e2 z2 into fma(e2, z2, fma(e0, z0, e1 z1)): so does this.
-    t = _fma(e2, z2, _fma(e0, z0, e1 * z1)) / det
-    if t >= t_min and t <= t_max:
+    t = _plane_distance(e0, e1, e2, z0, z1, z2, det)
+    if _in_interval(t, t_min, t_max):
         return True, t
     return False, inf
 
@@ -302,95 +263,16 @@ def _row(m0, m1, m2, x0, x1, x2):
 
 
 @numba.njit(cache=True)
-def _dot(ax, ay, az, bx, by, bz):
-    """``jnp.dot`` of two 3-vectors as the GPU kernel computes it: ``(ax bx + ay by) + az bz``, unfused."""
-    return (ax * bx + ay * by) + az * bz
-
-
-@numba.njit(cache=True)
-def _take(best_ok, best_t, ok, t, t_min, t_max):
-    """One candidate of the portable ``_nearest``: kept where valid, inside the interval and strictly nearer."""
-    ok = ok and t >= t_min and t <= t_max
-    if ok and t < best_t:
-        best_t = t
-    return best_ok or ok, best_t
-
-
-@numba.njit(cache=True)
-def _sphere(px, py, pz, radius, ox, oy, oz, dx, dy, dz, t_min, t_max, one, inf):
-    """:func:`jaxrt._src.primitives.analytic.sphere` (the GPU kernel's ``_sphere``)."""
-    fx, fy, fz = ox - px, oy - py, oz - pz
-    a = _dot(dx, dy, dz, dx, dy, dz)
-    b = -_dot(fx, fy, fz, dx, dy, dz)
-    s = b / a
-    gx, gy, gz = fx + s * dx, fy + s * dy, fz + s * dz
-    rr = radius * radius
-    disc = a * (rr - _dot(gx, gy, gz, gx, gy, gz))
-    ok = disc >= 0
-    q = b + (one if b >= 0 else -one) * np.sqrt(disc if ok else one)
-    c = _dot(fx, fy, fz, fx, fy, fz) - rr
-    q_ok = ok and q != 0
-    t0 = c / (q if q_ok else one)
-    t1 = q / a
-    best_ok, best_t = _take(False, inf, q_ok, t0, t_min, t_max)
-    return _take(best_ok, best_t, ok, t1, t_min, t_max)
-
-
-@numba.njit(cache=True)
-def _disk(px, py, pz, nx, ny, nz, radius, ox, oy, oz, dx, dy, dz, t_min, t_max, one, inf):
-    """:func:`jaxrt._src.primitives.analytic.disk` (both faces)."""
-    denom = _dot(dx, dy, dz, nx, ny, nz)
-    ok = denom != 0
-    t = _dot(px - ox, py - oy, pz - oz, nx, ny, nz) / (denom if ok else one)
-    ux, uy, uz = (ox + t * dx) - px, (oy + t * dy) - py, (oz + t * dz) - pz
-    inside = _dot(ux, uy, uz, ux, uy, uz) <= radius * radius
-    return _take(False, inf, ok and inside, t, t_min, t_max)
-
-
-@numba.njit(cache=True)
-def _capped_cylinder(px, py, pz, qx, qy, qz, radius, ox, oy, oz, dx, dy, dz, t_min, t_max, one, inf):
-    """:func:`jaxrt._src.primitives.analytic.capped_cylinder`: the side wall's two roots, then the caps at ``p0``
-    and ``p1`` (its order of candidates)."""
-    ax, ay, az = qx - px, qy - py, qz - pz
-    length2 = _dot(ax, ay, az, ax, ay, az)
-    cx, cy, cz = ox - px, oy - py, oz - pz
-    d_along = _dot(dx, dy, dz, ax, ay, az)
-    oc_along = _dot(cx, cy, cz, ax, ay, az)
-    vx, vy, vz = dx * length2 - ax * d_along, dy * length2 - ay * d_along, dz * length2 - az * d_along
-    ux, uy, uz = cx * length2 - ax * oc_along, cy * length2 - ay * oc_along, cz * length2 - az * oc_along
-    a = _dot(vx, vy, vz, vx, vy, vz)
-    b = _dot(ux, uy, uz, vx, vy, vz)
-    limit = ((radius * radius) * length2) * length2
-    c = _dot(ux, uy, uz, ux, uy, uz) - limit
-    disc = b * b - a * c
-    wall_ok = a > 0 and disc >= 0
-    root = np.sqrt(disc if wall_ok else one)
-    a_safe = a if wall_ok else one
-    best_ok, best_t = False, inf
-    for sign in (-one, one):
-        t = (-b + sign * root) / a_safe
-        along = oc_along + t * d_along
-        best_ok, best_t = _take(best_ok, best_t, wall_ok and along >= 0 and along <= length2, t, t_min, t_max)
-    cap_ok = d_along != 0
-    d_safe = d_along if cap_ok else one
-    for start in ((one - one) * length2 - oc_along, length2 - oc_along):  # the portable ``target * length2 - oc_along``
-        t = start / d_safe
-        rx, ry, rz = ux + t * vx, uy + t * vy, uz + t * vz
-        best_ok, best_t = _take(best_ok, best_t, cap_ok and _dot(rx, ry, rz, rx, ry, rz) <= limit, t, t_min, t_max)
-    return best_ok, best_t
-
-
-@numba.njit(cache=True)
 def _analytic(row, ox, oy, oz, dx, dy, dz, t_min, t_max, one, inf):
     """``(accepted, distance)`` of an analytic leaf's row (:func:`jaxrt._src.traversal.packed.pack_analytic`:
     ``p``, code, ``q``, radius) for the ray of its level."""
     code = row[3]
     if code == 1:
-        ok, t = _sphere(row[0], row[1], row[2], row[7], ox, oy, oz, dx, dy, dz, t_min, t_max, one, inf)
+        ok, t = _sphere(row[0], row[1], row[2], row[7], ox, oy, oz, dx, dy, dz, t_min, t_max)
     elif code == 2:
-        ok, t = _disk(row[0], row[1], row[2], row[4], row[5], row[6], row[7], ox, oy, oz, dx, dy, dz, t_min, t_max, one, inf)  # fmt: skip
+        ok, t = _disk(row[0], row[1], row[2], row[4], row[5], row[6], row[7], ox, oy, oz, dx, dy, dz, t_min, t_max)  # fmt: skip
     else:
-        ok, t = _capped_cylinder(row[0], row[1], row[2], row[4], row[5], row[6], row[7], ox, oy, oz, dx, dy, dz, t_min, t_max, one, inf)  # fmt: skip
+        ok, t = _capped_cylinder(row[0], row[1], row[2], row[4], row[5], row[6], row[7], ox, oy, oz, dx, dy, dz, t_min, t_max)  # fmt: skip
     return ok, (t if ok else inf)
 
 
@@ -753,14 +635,11 @@ def trace_flat(
 def _triangle_at(tf, q, ux, uy, uz, ox, oy, oz, sx, sy, sz, t_min, t_max, cull, inf):
     """:func:`_triangle` of the triangle at flat offset ``q``, its vertices' components read at the ray's
     axes ``ux, uy, uz`` (``kx, ky, kz``; ``ox, oy, oz`` the origin's): the same operations on the same values."""
-    az = tf[q + uz] - oz
-    bz = tf[q + _U3 + uz] - oz
-    cz = tf[q + _U6 + uz] - oz
-    ax = _fma(-sx, az, tf[q + ux] - ox)
-    ay = _fma(-sy, az, tf[q + uy] - oy)
-    bx = _fma(-sx, bz, tf[q + _U3 + ux] - ox)
-    by = _fma(-sy, bz, tf[q + _U3 + uy] - oy)
-    cx = _fma(-sx, cz, tf[q + _U6 + ux] - ox)
-    cy = _fma(-sy, cz, tf[q + _U6 + uy] - oy)
-    z0, z1, z2 = sz * az, sz * bz, sz * cz
+    ax, ay, z0 = _sheared_vertex(tf[q + ux] - ox, tf[q + uy] - oy, tf[q + uz] - oz, sx, sy, sz)
+    bx, by, z1 = _sheared_vertex(tf[q + _U3 + ux] - ox, tf[q + _U3 + uy] - oy, tf[q + _U3 + uz] - oz, sx, sy, sz)
+    cx, cy, z2 = _sheared_vertex(tf[q + _U6 + ux] - ox, tf[q + _U6 + uy] - oy, tf[q + _U6 + uz] - oz, sx, sy, sz)
     return _watertight(ax, ay, z0, bx, by, z1, cx, cy, z2, t_min, t_max, cull, inf)
+
+
+#: Cached functions here embed the formulas: their disk cache is keyed on the formulas' source too.
+key_caches_on_formulas(globals())

@@ -10,8 +10,10 @@ same way. The traversal order, and hence the chosen leaf among equally
 distant hits and the first accepted hit in any-hit mode, are those of the portable path wherever both compute
 the same values.
 
-Exactness: the kernel is compiled without floating-point contraction (no fused multiply-add), and the hit
-distance is a correctly rounded division (``div_rn``), so every value is the IEEE result of the formulas of
+Exactness: the slab test, the shear and the watertight test are the shared formulas of
+:mod:`jaxrt._src.formulas` (which the portable primitives also call) instantiated for Triton. The kernel is
+compiled without floating-point contraction (no fused multiply-add), and the hit distance is a correctly
+rounded division (``div_rn``), so every value is the IEEE result of the formulas of
 :mod:`jaxrt._src.primitives.triangle` and :mod:`jaxrt._src.primitives.box`. Rounding is monotonic, so each
 edge function ``round(a b) - round(c d)`` has the sign of the exact ``a b - c d`` or is zero (zero counts as
 inside): no ray passes between triangles that share an edge or a vertex. A contracted
@@ -86,8 +88,23 @@ from __future__ import annotations
 import triton
 import triton.language as tl
 
+from jaxrt._src import formulas
 from jaxrt._src.traversal.triton_analytic import analytic_hit
 from jaxrt._src.traversal.triton_curves import curve_leaf, curve_ray, is_curve_leaf
+
+_box = formulas.instance("box", "triton")
+_slab_axis = _box.slab_axis
+_slab_distances = _box.slab_distances
+_box_hit = _box.box_hit
+_tri = formulas.instance("triangle", "triton")
+_shear_axes = _tri.shear_axes
+_shear_of = _tri.shear
+_sheared_vertex = _tri.sheared_vertex
+_edge_functions = _tri.edge_functions
+_edges_inside = _tri.edges_inside
+_facing_accepts = _tri.facing_accepts
+_plane_distance = _tri.plane_distance
+_in_interval = _tri.in_interval
 
 
 @triton.jit
@@ -99,25 +116,6 @@ def _bit_or(a, b):
 def _select(k, x, y, z):
     """``(x, y, z)[k]`` per lane."""
     return tl.where(k == 0, x, tl.where(k == 1, y, z))
-
-
-@triton.jit
-def _product(a, b):
-    """``a * b`` rounded to 22 mantissa bits (nearest, ties to even), as the portable path's ``_product``.
-
-    The watertight test then decides every edge exactly as the portable traversal does (see
-    ``jaxrt._src.primitives.triangle._product`` for why the products are rounded to one bit less).
-    """
-    bits = (a * b).to(tl.int32, bitcast=True)
-    # One dropped bit: a set bit is exactly half an ulp of the kept mantissa; round up only to an even result.
-    bits = (bits + (bits & (bits >> 1) & 1)) & ~1
-    return bits.to(tl.float32, bitcast=True)
-
-
-@triton.jit
-def _edge(ux, uy, wx, wy):
-    """Edge function ``w.x u.y - w.y u.x`` with separately rounded products (exact sign, or zero)."""
-    return _product(wx, uy) - _product(wy, ux)
 
 
 @triton.jit
@@ -250,37 +248,24 @@ def _triangle(
         ax, bx, cx, _ = _quad(tris_ptr, leaf, 12, 0, mask, LANES, VECTOR)
         ay, by, cy, _ = _quad(tris_ptr, leaf, 12, 4, mask, LANES, VECTOR)
         az, bz, cz, _ = _quad(tris_ptr, leaf, 12, 8, mask, LANES, VECTOR)
-    # Vertices relative to the origin in the ray's (kx, ky, kz) frame.
-    a_z = _select(kz, ax, ay, az) - okz
-    b_z = _select(kz, bx, by, bz) - okz
-    c_z = _select(kz, cx, cy, cz) - okz
-    a_x = _select(kx, ax, ay, az) - okx - sx * a_z
-    b_x = _select(kx, bx, by, bz) - okx - sx * b_z
-    c_x = _select(kx, cx, cy, cz) - okx - sx * c_z
-    a_y = _select(ky, ax, ay, az) - oky - sy * a_z
-    b_y = _select(ky, bx, by, bz) - oky - sy * b_z
-    c_y = _select(ky, cx, cy, cz) - oky - sy * c_z
-    e0 = _edge(b_x, b_y, c_x, c_y)
-    e1 = _edge(c_x, c_y, a_x, a_y)
-    e2 = _edge(a_x, a_y, b_x, b_y)
-    negative = (e0 < 0) | (e1 < 0) | (e2 < 0)
-    positive = (e0 > 0) | (e1 > 0) | (e2 > 0)
-    det = e0 + e1 + e2
-    inside = ((negative & positive) == 0) & (det != 0)
+    # Vertices relative to the origin in the ray's (kx, ky, kz) frame, sheared (the formulas of
+    # jaxrt._src.formulas.triangle).
+    a_x, a_y, a_z = _sheared_vertex(_select(kx, ax, ay, az) - okx, _select(ky, ax, ay, az) - oky, _select(kz, ax, ay, az) - okz, sx, sy, sz)  # fmt: skip
+    b_x, b_y, b_z = _sheared_vertex(_select(kx, bx, by, bz) - okx, _select(ky, bx, by, bz) - oky, _select(kz, bx, by, bz) - okz, sx, sy, sz)  # fmt: skip
+    c_x, c_y, c_z = _sheared_vertex(_select(kx, cx, cy, cz) - okx, _select(ky, cx, cy, cz) - oky, _select(kz, cx, cy, cz) - okz, sx, sy, sz)  # fmt: skip
+    e0, e1, e2 = _edge_functions(a_x, a_y, b_x, b_y, c_x, c_y)
+    inside, det = _edges_inside(e0, e1, e2)
     if LEVELS > 0:
         if CULL != 0:
-            sense = facing * CULL
-            inside = inside & ((sense <= 0) | (det >= 0)) & ((sense >= 0) | (det < 0))
+            inside = inside & _facing_accepts(det, facing * CULL)
     elif CULL == 1:
         inside = inside & (det >= 0)
     elif CULL == -1:
         inside = inside & (det < 0)
     if LEAF_KEYS > 0:
         inside = inside & ((moving == 0) | key_visible)
-    t_scaled = e0 * (sz * a_z) + e1 * (sz * b_z) + e2 * (sz * c_z)
-    det_safe = tl.where(det == 0, 1.0, det)
-    distance = tl.math.div_rn(t_scaled, det_safe)
-    hit = mask & inside & (distance >= t_min) & (distance <= t_max)
+    distance = _plane_distance(e0, e1, e2, a_z, b_z, c_z, det)
+    hit = mask & inside & _in_interval(distance, t_min, t_max)
     return hit, tl.where(hit, distance, float("inf"))
 
 
@@ -318,17 +303,12 @@ def _leaf(
 
 @triton.jit
 def _axis(lo, hi, o, inv, PARALLEL: tl.constexpr, PLAIN: tl.constexpr):
-    """Entry and exit distance of one slab; a zero direction component (clamped reciprocal) keeps the ray at
-    one coordinate: all of it is inside the slab (origin in ``[lo, hi]``) or none of it. ``PLAIN``: no ray of
-    the warp has a zero component (the same values, without the test)."""
-    t0 = (lo - o) * inv
-    t1 = (hi - o) * inv
+    """Entry and exit distance of one slab (:mod:`jaxrt._src.formulas.box`); ``PLAIN``: no ray of the warp has a
+    zero direction component, so the clamped-reciprocal case is not generated (the same values)."""
     if PLAIN:
-        return tl.minimum(t0, t1), tl.maximum(t0, t1)
-    parallel = tl.abs(inv) >= PARALLEL
-    inside = (lo <= o) & (o <= hi)
-    near = tl.where(parallel, tl.where(inside, float("-inf"), float("inf")), tl.minimum(t0, t1))
-    far = tl.where(parallel, tl.where(inside, float("inf"), float("-inf")), tl.maximum(t0, t1))
+        near, far = _slab_distances(lo, hi, o, inv)
+    else:
+        near, far = _slab_axis(lo, hi, o, inv, PARALLEL)
     return near, far
 
 
@@ -356,9 +336,7 @@ def _slab(
     near_x, far_x = _axis(lo_x, hi_x, ox, ix, PARALLEL, PLAIN)
     near_y, far_y = _axis(lo_y, hi_y, oy, iy, PARALLEL, PLAIN)
     near_z, far_z = _axis(lo_z, hi_z, oz, iz, PARALLEL, PLAIN)
-    near = tl.maximum(tl.maximum(tl.maximum(near_x, near_y), near_z), t_min)
-    far = tl.minimum(tl.minimum(tl.minimum(far_x, far_y), far_z) * FAR_SCALE, t_max)
-    return (near <= far) & (lo_x <= hi_x), near, far
+    return _box_hit(near_x, far_x, near_y, far_y, near_z, far_z, lo_x, hi_x, t_min, t_max, FAR_SCALE)
 
 
 @triton.jit
@@ -666,19 +644,8 @@ def _safe_reciprocal(x, CLAMP: tl.constexpr, HUGE: tl.constexpr, CLAMPED: tl.con
 def _shear(dx, dy, dz):
     """``jaxrt._src.primitives.triangle.shear_ray``: sheared axes ``(kx, ky, kz)`` and shear ``(Sx, Sy, Sz)``
     (divided as XLA divides on the GPU)."""
-    ax = tl.abs(dx)
-    ay = tl.abs(dy)
-    az = tl.abs(dz)
-    kz = tl.where(ax >= ay, tl.where(ax >= az, 0, 2), tl.where(ay >= az, 1, 2))
-    kx = (kz + 1) % 3
-    ky = (kx + 1) % 3
-    d_z = _select(kz, dx, dy, dz)
-    swap = d_z < 0
-    kx, ky = tl.where(swap, ky, kx), tl.where(swap, kx, ky)
-    safe = tl.where(d_z == 0, 1.0, d_z)
-    sx = _select(kx, dx, dy, dz) / safe
-    sy = _select(ky, dx, dy, dz) / safe
-    sz = 1.0 / safe
+    kx, ky, kz = _shear_axes(dx, dy, dz)
+    sx, sy, sz = _shear_of(_select(kx, dx, dy, dz), _select(ky, dx, dy, dz), _select(kz, dx, dy, dz))
     return kx, ky, kz, sx, sy, sz
 
 

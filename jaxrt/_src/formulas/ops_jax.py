@@ -1,0 +1,52 @@
+"""The formula operations in JAX: elementwise on arrays of any broadcastable shape (``dot3`` on scalars or
+on the last axis), differentiable where the operation is, and vmappable."""
+
+from __future__ import annotations
+
+import math
+import operator
+
+import jax.numpy as jnp
+from jax import lax
+
+INF = math.inf
+select = jnp.where
+minimum = jnp.minimum
+maximum = jnp.maximum
+absolute = jnp.abs
+sqrt = jnp.sqrt
+div_rn = operator.truediv
+div = operator.truediv
+
+
+def like(x, value):
+    """A Python float: JAX's weak typing keeps the other operand's dtype."""
+    return value
+
+
+def false_like(condition):
+    return jnp.zeros_like(condition, bool)
+
+
+def rounded_product(a, b):
+    """``lax.reduce_precision`` to one mantissa bit less: a rounding XLA cannot remove, so the product cannot be
+    fused into an FMA either (a 23-bit ``reduce_precision`` of float32 is a no-op XLA deletes)."""
+    p = a * b
+    info = jnp.finfo(p.dtype)
+    return lax.reduce_precision(p, exponent_bits=info.nexp, mantissa_bits=info.nmant - 1)
+
+
+def sub_product(c, a, b):
+    return c - a * b
+
+
+def sum_of_products(a0, b0, a1, b1, a2, b2):
+    return a0 * b0 + a1 * b1 + a2 * b2
+
+
+def dot3(ax, ay, az, bx, by, bz):
+    a = jnp.stack(jnp.broadcast_arrays(ax, ay, az), axis=-1)
+    b = jnp.stack(jnp.broadcast_arrays(bx, by, bz), axis=-1)
+    if a.ndim == 1 and b.ndim == 1:
+        return jnp.dot(a, b)
+    return jnp.einsum("...i,...i->...", a, b)

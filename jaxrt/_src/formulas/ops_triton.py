@@ -1,0 +1,86 @@
+"""The formula operations in Triton: ``triton.jit`` device functions and builtins for the GPU kernels.
+
+The kernels are compiled without floating-point contraction, so ``+``, ``-`` and ``*`` are single IEEE
+operations; ``div_rn`` and ``sqrt`` are correctly rounded; ``div`` is Triton's ``/`` (PTX ``div.full.f32``,
+the instruction XLA's GPU backend emits for a float32 division). Imported only where Triton is installed.
+"""
+
+from __future__ import annotations
+
+import triton
+import triton.language as tl
+
+INF = tl.constexpr(float("inf"))
+#: Extra globals of a formula module instantiated for Triton: the interpreter (``TRITON_INTERPRET=1``) swaps
+#: ``triton.language``'s functions for its own through the jit function's globals, so every operation below
+#: reaches ``tl`` through a jit function (inlined by the compiler) rather than an alias bound at import.
+GLOBALS = {"tl": tl}
+
+
+@triton.jit
+def select(condition, a, b):
+    return tl.where(condition, a, b)
+
+
+@triton.jit
+def minimum(a, b):
+    return tl.minimum(a, b)
+
+
+@triton.jit
+def maximum(a, b):
+    return tl.maximum(a, b)
+
+
+@triton.jit
+def absolute(x):
+    return tl.abs(x)
+
+
+@triton.jit
+def sqrt(x):
+    return tl.math.sqrt_rn(x)
+
+
+@triton.jit
+def div_rn(a, b):
+    return tl.math.div_rn(a, b)
+
+
+@triton.jit
+def like(x, value: tl.constexpr):
+    return tl.full(x.shape, value, x.dtype)
+
+
+@triton.jit
+def false_like(condition):
+    return tl.zeros(condition.shape, tl.int1)
+
+
+@triton.jit
+def div(a, b):
+    return a / b
+
+
+@triton.jit
+def rounded_product(a, b):
+    """``a * b`` rounded to 22 mantissa bits (nearest, ties to even), as XLA's ``reduce_precision``."""
+    bits = (a * b).to(tl.int32, bitcast=True)
+    # One dropped bit: a set bit is exactly half an ulp of the kept mantissa; round up only to an even result.
+    bits = (bits + (bits & (bits >> 1) & 1)) & ~1
+    return bits.to(tl.float32, bitcast=True)
+
+
+@triton.jit
+def sub_product(c, a, b):
+    return c - a * b
+
+
+@triton.jit
+def sum_of_products(a0, b0, a1, b1, a2, b2):
+    return a0 * b0 + a1 * b1 + a2 * b2
+
+
+@triton.jit
+def dot3(ax, ay, az, bx, by, bz):
+    return (ax * bx + ay * by) + az * bz
