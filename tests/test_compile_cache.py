@@ -12,6 +12,7 @@ import contextlib
 
 import jax
 import numpy as np
+import pytest
 
 import jaxrt as rt
 
@@ -93,3 +94,22 @@ def test_build_inside_jit_with_same_shapes_does_not_recompile():
     with compilations() as names:
         jax.block_until_ready(build(rng.normal(size=(45 * 3, 3)).astype(np.float32)))
     assert names == []
+
+
+def test_closed_over_rays_are_named_inside_jit_only(monkeypatch):
+    """Large concrete rays or structure arrays reaching ``intersect`` inside ``jax.jit`` (closed over, so folded
+    into the program as constants) give a warning; the same call with them as arguments, or eagerly, does not."""
+    import warnings
+
+    from jaxrt._src import intersector as module
+
+    monkeypatch.setattr(module, "CLOSED_OVER_BYTES", 1024)
+    structure = rt.build_primitive_structure(_geometry(16, 0))
+    rays = _rays(64, 1)
+    intersector = rt.Intersector()
+    with pytest.warns(module.ClosedOverConstantsWarning, match="as arguments"):
+        jax.jit(lambda: intersector.intersect(rays, structure).distance)()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", module.ClosedOverConstantsWarning)
+        jax.jit(lambda r, s: intersector.intersect(r, s).distance)(rays, structure)
+        intersector.intersect(rays, structure)

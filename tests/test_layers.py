@@ -66,6 +66,8 @@ DEFERRED = {
     ("traversal.cpu", "traversal.cpu_kernel"): "Numba",
     ("traversal.cpu", "traversal.cpu_order"): "Numba",
     ("traversal.gpu", "traversal.triton_kernel"): "Triton",
+    # the package instantiates its Numba operations on demand; they read the package's digest back then
+    ("formulas.ops_numba", "formulas"): "Numba",
 }
 
 

@@ -294,14 +294,15 @@ def host_scene(structure: Any, rays: Any, *, with_rays: bool = True) -> tuple[np
     if structure.levels:  # an instance structure
         return None
     leaves = jax.tree_util.tree_leaves((structure, rays))
-    if any(isinstance(x, jax.core.Tracer) for x in leaves):
+    default = jnp.zeros(())  # a tracer itself inside a trace, even where every leaf is concrete (closed over)
+    if any(isinstance(x, jax.core.Tracer) for x in (default, *leaves)):
         return None
     arrays = (structure.node_lower, structure.node_upper, structure.node_children, structure.leaf_triangle)
     if structure.node_children.dtype != jnp.int32 or not all(isinstance(a, jax.Array) for a in arrays):
         return None
     # Every array on the default CPU device: the program runs there on these very buffers (no transfer).
     devices = {d for x in leaves if isinstance(x, jax.Array) for d in x.devices()}
-    if devices != jnp.zeros(()).devices() or next(iter(devices)).platform != "cpu":
+    if devices != default.devices() or next(iter(devices)).platform != "cpu":
         return None
     if any(a.is_deleted() or a.size == 0 for a in arrays):
         return None
