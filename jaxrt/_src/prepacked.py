@@ -90,7 +90,8 @@ def build_primitive_structure(
         (docs/performance.md). Same node layout either way.
       checks: also check traced inputs (non-finite coordinates, negative radii, inverted boxes, indices out
         of range), which constructors check only when concrete: a :class:`~jaxrt._src.checks.BuildCheckError`
-        (inside ``jit``, a ``jax.errors.JaxRuntimeError`` carrying its message) instead of silent misses.
+        (inside ``jit``, a ``jax.errors.JaxRuntimeError`` carrying its message, which
+        :func:`~jaxrt.build_check_errors` raises as the former) instead of silent misses.
         Costs a host synchronisation per build (:mod:`jaxrt._src.checks`).
       kernel_layout: also store the GPU kernel's packed node and triangle rows (112 bytes per leaf slot), so
         that traces on the GPU do not repack them per call. ``None`` (the default): where the GPU kernel can

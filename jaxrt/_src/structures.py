@@ -437,43 +437,17 @@ def build_structure(
     packer: Any = None,
 ) -> PrimitiveAccelerationStructure:
     """Build an LBVH over one or more geometries (jitted; also callable on traced arrays inside ``jax.jit``):
-    ``rt.build_primitive_structure`` (:func:`jaxrt._src.prepacked.build_primitive_structure`) without deciding
-    on the GPU kernel's rows.
-
-    Morton codes of the primitive box centroids (30 bits), a stable radix sort, the Karras 2012 radix tree
-    with the index tie-break for equal codes, and node boxes from a sparse-table range reduction.
+    ``rt.build_primitive_structure`` (:func:`jaxrt._src.prepacked.build_primitive_structure`, whose docstring
+    describes the arguments) without deciding on the GPU kernel's rows.
 
     Args:
-      geometries: a geometry or a sequence of them; hits report the position in this sequence as
-        ``geometry_id``.
-      motion: the time range and border modes (a :class:`~jaxrt.MotionSpec`) of the ``Motion*Geometry``
-        keyframes among ``geometries`` (required with them, refused without them). Every motion geometry of
-        the structure has the same keyframe count; static geometries stay put at every time. Node boxes bound
-        each primitive over all keyframes (the union of its keyframe boxes); rays read ``rt.Ray.time``.
-      capacity: optional minimum number of primitive slots. The capacity is rounded up to a power of two
-        (at least 2) so that scenes of similar size share compiled code.
-      quality: ``"fast"`` (the LBVH) or ``"high"`` (the LBVH restructured by agglomerative clustering, PLOC,
-        :mod:`jaxrt._src.bvh.ploc`): a lower SAH cost at 3 to 10 times the build time; faster to trace where
-        triangle sizes vary a lot (building interiors), about as fast on evenly tessellated meshes
-        (docs/performance.md). Same node layout either way.
-      checks: also check traced inputs (non-finite coordinates, negative radii, inverted boxes, indices out
-        of range), which constructors check only when concrete: a :class:`~jaxrt._src.checks.BuildCheckError`
-        (inside ``jit``, a ``jax.errors.JaxRuntimeError`` carrying its message, which
-        :func:`~jaxrt.build_check_errors` raises as the former) instead of silent misses.
-        Costs a host synchronisation per build (:mod:`jaxrt._src.checks`).
       packer: static; ``None``, or the function that packs the GPU kernel's rows from the node arrays and
         leaf triangles (``(node_lower, node_upper, node_children, leaf_triangle) -> KernelLayout``), run in the
-        same compiled build.
+        same compiled build. The other arguments are those of ``rt.build_primitive_structure``.
 
     Returns:
       A :class:`PrimitiveAccelerationStructure`. Leaf vertices keep their gradient connection to the
       geometry, so hit distances and barycentrics differentiate through the build.
-
-    Examples:
-      >>> import jaxrt as rt
-      >>> s = rt.build_primitive_structure(rt.TriangleGeometry([[0., 0, 0], [1, 0, 0], [0, 1, 0]]))
-      >>> s.capacity
-      2
     """
     if quality not in QUALITIES:
         raise ValueError(f"build_primitive_structure: quality must be one of {QUALITIES}, got {quality!r}")
