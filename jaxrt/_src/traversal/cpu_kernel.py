@@ -298,10 +298,52 @@ def _insert(hit_distance, hit_leaf, hit_chains, k, t, leaf, chain, level, levels
     return 1
 
 
+@numba.njit(cache=True, inline="always")
+def _keyframe_position(time, start, end, span, segments, vanish_start, vanish_end, one):
+    """:func:`jaxrt._src.motion.keyframe_position` for one ray: ``(index, weight, visible)`` (``span`` is
+    ``end - start`` rounded from the spec's floats, ``segments`` is ``K - 1``, both in the time's dtype)."""
+    position = (time - start) / span * segments
+    if np.isnan(position):  # NaN times take keyframe 0
+        position = one - one
+    clamped = min(max(position, one - one), segments)
+    # The clipped floor as a float (a whole number, exact), so that the weight stays in the time's dtype.
+    key = min(max(np.floor(clamped), one - one), segments - one)
+    visible = not (time < start and vanish_start) and not (time > end and vanish_end)
+    return np.int64(key), clamped - key, visible
+
+
+@numba.njit(cache=True, inline="always")
+def _blend(a, b, w, one):
+    """:func:`jaxrt._src.motion.blend`, ``(1 - w) a + w b``, as XLA's CPU backend contracts it:
+    ``fma(1 - w, a, w b)``."""
+    return _fma(one - w, a, w * b)
+
+
+@numba.njit(cache=True, inline="always")
+def _node_keys(lower, upper, key, node, w, one, out):
+    """Node ``node``'s two child boxes blended between keyframes ``key`` and ``key + 1`` (the portable
+    ``_node_boxes_at``: equal corners kept as they are) into ``out``: both lowers, then both uppers."""
+    for c in range(2):
+        for a in range(3):
+            x, y = lower[key, node, c, a], lower[key + 1, node, c, a]
+            out[3 * c + a] = x if x == y else _blend(x, y, w, one)
+            x, y = upper[key, node, c, a], upper[key + 1, node, c, a]
+            out[6 + 3 * c + a] = x if x == y else _blend(x, y, w, one)
+
+
+@numba.njit(cache=True, inline="always")
+def _leaf_keys(keys, key, leaf, w, one, out):
+    """Leaf ``leaf``'s triangle blended between keyframes ``key`` and ``key + 1`` into ``out`` (nine values)."""
+    for v in range(3):
+        for a in range(3):
+            out[3 * v + a] = _blend(keys[key, leaf, v, a], keys[key + 1, leaf, v, a], w, one)
+
+
 @numba.njit(nogil=True, cache=True)
 def trace_rays(
     node_lower, node_upper, node_children, leaf_triangle, world_to_object, child_root, instance_facing,
-    instance_mask, analytic_rows, origin, direction, t_min_all, t_max_all, enabled, mask_all, consts, params, counter, chunk, end, out_distance,
+    instance_mask, analytic_rows, node_keys_lower, node_keys_upper, leaf_keys, leaf_moving, motion_f, motion_i,
+    origin, direction, t_min_all, t_max_all, enabled, mask_all, time_all, consts, params, counter, chunk, end, out_distance,
     out_leaf, out_chain, out_visited, out_tested, out_overflow, out_hit_distance, out_hit_leaf, out_hit_total,
     out_hit_chain,
 ):  # fmt: skip
@@ -316,9 +358,20 @@ def trace_rays(
     ``out_hit_*`` (``(end, K)``, ``(end, K)``, ``(end,)``, ``(end, K, levels)``) as the portable
     :class:`~jaxrt._src.traversal.step.HitList` keeps them; ``out_distance`` is then the culling distance and
     ``out_leaf`` the first hit.
+
+    With ``params[10]`` (primitive keyframe motion, no instances) each ray's node boxes and triangles are the
+    keyframes blended at its time ``time_all[i]`` (:func:`_keyframe_position`, :func:`_blend`): the node boxes
+    ``node_keys_*`` ``(K, M, 2, 3)`` where ``motion_i[0]``, the triangles ``leaf_keys`` ``(L, P, 3, 3)``, and
+    moving leaves (``leaf_moving``) vanish outside the range on a ``"vanish"`` border. ``motion_f`` holds
+    the node then the leaf keyframes' ``start, end, end - start, K - 1`` in the geometry's dtype, ``motion_i``
+    whether nodes move, vanish at start, vanish at end.
     """
     root, primitive_leaves, levels, stack_size, any_hit, cull = params[0], params[1], params[2], params[3], params[4] != 0, params[5]  # fmt: skip
     hit_list, k, count_all, analytic = params[6] != 0, params[7], params[8] != 0, params[9] != 0
+    moving, nodes_move = params[10] != 0, motion_i[0] != 0
+    vanish_start, vanish_end = motion_i[1] != 0, motion_i[2] != 0
+    key_v = np.empty(9, consts.dtype)
+    key_b = np.empty(12, consts.dtype)
     hit_distance = np.empty(max(k, 1), consts.dtype)
     hit_leaf = np.empty(max(k, 1), np.int32)
     hit_chains = np.empty((max(k, 1), max(levels, 1)), np.int32)
@@ -361,6 +414,11 @@ def trace_rays(
             o0, o1, o2 = origin[i, 0], origin[i, 1], origin[i, 2]
             w0, w1, w2 = direction[i, 0], direction[i, 1], direction[i, 2]  # the loaded direction
             i0, i1, i2, kx, ky, kz, sx, sy, sz = _load(o0, o1, o2, w0, w1, w2, one, clamp, huge, clamped_huge)
+            node_key, node_w, leaf_key, leaf_w, visible = 0, one, 0, one, True
+            if moving:
+                time = time_all[i]
+                node_key, node_w, _ = _keyframe_position(time, motion_f[0], motion_f[1], motion_f[2], motion_f[3], False, False, one)  # fmt: skip
+                leaf_key, leaf_w, visible = _keyframe_position(time, motion_f[4], motion_f[5], motion_f[6], motion_f[7], vanish_start, vanish_end, one)  # fmt: skip
             facing = 1
             node = root
             depth = 0
@@ -384,8 +442,13 @@ def trace_rays(
                 c0 = cf[un * _U2]
                 c1 = cf[un * _U2 + _U1]
                 b = un * _U6
-                hit0, near0 = _box(lf[b], lf[b + _U1], lf[b + _U2], hf[b], hf[b + _U1], hf[b + _U2], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
-                hit1, near1 = _box(lf[b + _U3], lf[b + _U4], lf[b + _U5], hf[b + _U3], hf[b + _U4], hf[b + _U5], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
+                if moving and nodes_move:  # the node's keyframe boxes blended at the ray's time
+                    _node_keys(node_keys_lower, node_keys_upper, node_key, node, node_w, one, key_b)
+                    hit0, near0 = _box(key_b[0], key_b[1], key_b[2], key_b[6], key_b[7], key_b[8], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
+                    hit1, near1 = _box(key_b[3], key_b[4], key_b[5], key_b[9], key_b[10], key_b[11], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
+                else:
+                    hit0, near0 = _box(lf[b], lf[b + _U1], lf[b + _U2], hf[b], hf[b + _U1], hf[b + _U2], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
+                    hit1, near1 = _box(lf[b + _U3], lf[b + _U4], lf[b + _U5], hf[b + _U3], hf[b + _U4], hf[b + _U5], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
                 # Leaf children: primitives are tested now, instances are entered like inner children (when visible).
                 k0 = -1 - c0
                 k1 = -1 - c1
@@ -404,6 +467,12 @@ def trace_rays(
                             tested += 1
                             if analytic and analytic_rows[k0, 3] != 0:
                                 ok0, t0 = _analytic(analytic_rows[k0], o0, o1, o2, w0, w1, w2, t_min, distance, one, inf)  # fmt: skip
+                            elif moving:  # the triangle blended at the ray's time; a moving one may vanish
+                                _leaf_keys(leaf_keys, leaf_key, k0, leaf_w, one, key_v)
+                                v = (key_v[0], key_v[1], key_v[2], key_v[3], key_v[4], key_v[5], key_v[6], key_v[7], key_v[8])  # fmt: skip
+                                ok0, t0 = _triangle(v, o0, o1, o2, kx, ky, kz, sx, sy, sz, t_min, distance, sense, inf)  # fmt: skip
+                                if not visible and leaf_moving[k0]:
+                                    ok0, t0 = False, inf
                             else:
                                 q = np.uint64(k0) * _U9
                                 v = (tf[q], tf[q + _U1], tf[q + _U2], tf[q + _U3], tf[q + _U4], tf[q + _U5], tf[q + _U6], tf[q + _U7], tf[q + _U8])  # fmt: skip
@@ -418,6 +487,12 @@ def trace_rays(
                             tested += 1
                             if analytic and analytic_rows[k1, 3] != 0:
                                 ok1, t1 = _analytic(analytic_rows[k1], o0, o1, o2, w0, w1, w2, t_min, distance, one, inf)  # fmt: skip
+                            elif moving:  # the triangle blended at the ray's time; a moving one may vanish
+                                _leaf_keys(leaf_keys, leaf_key, k1, leaf_w, one, key_v)
+                                v = (key_v[0], key_v[1], key_v[2], key_v[3], key_v[4], key_v[5], key_v[6], key_v[7], key_v[8])  # fmt: skip
+                                ok1, t1 = _triangle(v, o0, o1, o2, kx, ky, kz, sx, sy, sz, t_min, distance, sense, inf)  # fmt: skip
+                                if not visible and leaf_moving[k1]:
+                                    ok1, t1 = False, inf
                             else:
                                 q = np.uint64(k1) * _U9
                                 v = (tf[q], tf[q + _U1], tf[q + _U2], tf[q + _U3], tf[q + _U4], tf[q + _U5], tf[q + _U6], tf[q + _U7], tf[q + _U8])  # fmt: skip
