@@ -514,7 +514,9 @@ def trace_scene(
     words = lambda a: lax.bitcast_convert_type(detached(a).astype(dtype), jnp.uint32) if wide else detached(a)  # noqa: E731
     rows = None if analytic is None else analytic.rows
     motion = jax.tree_util.tree_map(detached, _motion_arguments(scene, layout, leaf_motion))
-    args = _arguments(scene, origin, direction, t_min, t_max, enabled, mask, words, rows, motion, time if moving else None)
+    args = _arguments(
+        scene, origin, direction, t_min, t_max, enabled, mask, words, rows, motion, time if moving else None
+    )
     n = origin.shape[0]
     shapes = (
         jax.ShapeDtypeStruct((n, 2), jnp.uint32) if wide else jax.ShapeDtypeStruct((n,), dtype),
