@@ -177,13 +177,13 @@ def _trace(params: tuple, arrays: list[np.ndarray], boxes: np.ndarray | None) ->
     )
     consts, flags = constants(dtype), np.asarray(params, np.int64)
     counter = np.zeros(1, np.int64)
-    if levels == 0 and not hit_list and not params[9] and not params[10]:  # static triangles: the lean loop
+    if levels == 0 and not hit_list and not params[9]:  # triangles only, no instances: the lean loop
         rays = arrays[_RAYS : _RAYS + 5]
         if boxes is None:
             boxes = box_rows(arrays[0], arrays[1])
         run = functools.partial(
             cpu_kernel.trace_flat, *arrays[:4], boxes, *rays, consts, params[0], params[3], bool(params[4]), params[5],
-            counter, CHUNK, n, out[0], out[1], *out[3:],
+            counter, CHUNK, n, out[0], out[1], *out[3:], bool(params[10]), *arrays[9:15], arrays[_RAYS + 6],
         )  # fmt: skip
     else:
         run = functools.partial(cpu_kernel.trace_rays, *arrays, consts, flags, counter, CHUNK, n, *out, *hits)

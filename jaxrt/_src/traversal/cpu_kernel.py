@@ -339,6 +339,21 @@ def _leaf_keys(keys, key, leaf, w, one, out):
             out[3 * v + a] = _blend(keys[key, leaf, v, a], keys[key + 1, leaf, v, a], w, one)
 
 
+@numba.njit(cache=True, inline="always")
+def _box_row(boxes, row, nan):
+    """Two boxes as :func:`_node_keys` writes them, laid out as one row of :func:`box_rows` (an empty box's x
+    bounds NaN)."""
+    for a in range(3):
+        row[4 * a] = boxes[a]
+        row[4 * a + 1] = boxes[3 + a]
+        row[4 * a + 2] = boxes[6 + a]
+        row[4 * a + 3] = boxes[9 + a]
+    for k in range(2):
+        if not boxes[3 * k] <= boxes[6 + 3 * k]:
+            row[k] = nan
+            row[2 + k] = nan
+
+
 @numba.njit(nogil=True, cache=True)
 def trace_rays(
     node_lower, node_upper, node_children, leaf_triangle, world_to_object, child_root, instance_facing,
@@ -608,13 +623,20 @@ def trace_rays(
 def trace_flat(
     node_lower, node_upper, node_children, leaf_triangle, rows, origin, direction, t_min_all, t_max_all, enabled,
     consts, root, stack_size, any_hit, cull, counter, chunk, end, out_distance, out_leaf, out_visited, out_tested,
-    out_overflow,
+    out_overflow, moving, node_keys_lower, node_keys_upper, leaf_keys, leaf_moving, motion_f, motion_i, time_all,
 ):  # fmt: skip
     """:func:`trace_rays` for a primitive structure of triangles (no instance levels, no hit list, no analytic
     leaves): the same loop without the instance, hit-list and analytic bookkeeping, and the same results. The
     instance chain (zero columns) is not written. ``rows`` holds the node boxes as :func:`box_rows` lays them
-    out, for the vector test; the scalar test reads ``node_lower`` and ``node_upper``."""
+    out, for the vector test; the scalar test reads ``node_lower`` and ``node_upper``. With ``moving``, the
+    primitive keyframe motion of :func:`trace_rays` (its ``node_keys_*`` to ``time_all`` arguments): each
+    visited node's boxes and each tested triangle are blended at the ray's time first."""
     stack = np.empty(max(stack_size, 1), np.int32)
+    nodes_move, vanish_start, vanish_end = motion_i[0] != 0, motion_i[1] != 0, motion_i[2] != 0
+    key_b = np.empty(12, consts.dtype)  # a node's boxes blended: lowers, then uppers (as _node_keys writes them)
+    key_r = np.empty(12, consts.dtype)  # the same as a row of :func:`box_rows`
+    key_v = np.empty(9, consts.dtype)
+    nan = consts[0] * np.nan
     one, inf, clamp, huge, clamped_huge = consts[0], consts[2], consts[3], consts[4], consts[5]
     far_scale, parallel = consts[6], consts[7]
     lf, hf, cf, tf = node_lower.reshape(-1), node_upper.reshape(-1), node_children.reshape(-1), leaf_triangle.reshape(-1)  # fmt: skip
@@ -640,6 +662,11 @@ def trace_flat(
             ox, oy, oz = _pick(kx, o0, o1, o2), _pick(ky, o0, o1, o2), _pick(kz, o0, o1, o2)
             ux, uy, uz = np.uint64(kx), np.uint64(ky), np.uint64(kz)
             straight = abs(i0) < parallel and abs(i1) < parallel and abs(i2) < parallel
+            node_key, node_w, leaf_key, leaf_w, visible = 0, one, 0, one, True
+            if moving:
+                time = time_all[i]
+                node_key, node_w, _ = _keyframe_position(time, motion_f[0], motion_f[1], motion_f[2], motion_f[3], False, False, one)  # fmt: skip
+                leaf_key, leaf_w, visible = _keyframe_position(time, motion_f[4], motion_f[5], motion_f[6], motion_f[7], vanish_start, vanish_end, one)  # fmt: skip
             node = root
             depth = 0
             visited = 0
@@ -651,7 +678,15 @@ def trace_flat(
                 c0 = cf[un * _U2]
                 c1 = cf[un * _U2 + _U1]
                 b = un * _U6
-                if straight:
+                if moving and nodes_move:  # the node's keyframe boxes blended at the ray's time
+                    _node_keys(node_keys_lower, node_keys_upper, node_key, node, node_w, one, key_b)
+                    if straight:
+                        _box_row(key_b, key_r, nan)
+                        hit0, near0, hit1, near1 = _box_pair(key_r, _U1 - _U1, o0, o1, o2, i0, i1, i2, t_min, distance, far_scale)  # fmt: skip
+                    else:
+                        hit0, near0 = _box(key_b[0], key_b[1], key_b[2], key_b[6], key_b[7], key_b[8], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
+                        hit1, near1 = _box(key_b[3], key_b[4], key_b[5], key_b[9], key_b[10], key_b[11], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
+                elif straight:
                     hit0, near0, hit1, near1 = _box_pair(rf, un * _U12, o0, o1, o2, i0, i1, i2, t_min, distance, far_scale)  # fmt: skip
                 else:
                     hit0, near0 = _box(lf[b], lf[b + _U1], lf[b + _U2], hf[b], hf[b + _U1], hf[b + _U2], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
@@ -662,10 +697,22 @@ def trace_flat(
                 t1 = inf
                 if c0 < 0 and hit0:
                     tested += 1
-                    ok0, t0 = _triangle_at(tf, np.uint64(-1 - c0) * _U9, ux, uy, uz, ox, oy, oz, sx, sy, sz, t_min, distance, cull, inf)  # fmt: skip
+                    if moving:  # the triangle blended at the ray's time; a moving one may vanish
+                        _leaf_keys(leaf_keys, leaf_key, -1 - c0, leaf_w, one, key_v)
+                        ok0, t0 = _triangle_at(key_v, _U1 - _U1, ux, uy, uz, ox, oy, oz, sx, sy, sz, t_min, distance, cull, inf)  # fmt: skip
+                        if not visible and leaf_moving[-1 - c0]:
+                            ok0, t0 = False, inf
+                    else:
+                        ok0, t0 = _triangle_at(tf, np.uint64(-1 - c0) * _U9, ux, uy, uz, ox, oy, oz, sx, sy, sz, t_min, distance, cull, inf)  # fmt: skip
                 if c1 < 0 and hit1:
                     tested += 1
-                    ok1, t1 = _triangle_at(tf, np.uint64(-1 - c1) * _U9, ux, uy, uz, ox, oy, oz, sx, sy, sz, t_min, distance, cull, inf)  # fmt: skip
+                    if moving:
+                        _leaf_keys(leaf_keys, leaf_key, -1 - c1, leaf_w, one, key_v)
+                        ok1, t1 = _triangle_at(key_v, _U1 - _U1, ux, uy, uz, ox, oy, oz, sx, sy, sz, t_min, distance, cull, inf)  # fmt: skip
+                        if not visible and leaf_moving[-1 - c1]:
+                            ok1, t1 = False, inf
+                    else:
+                        ok1, t1 = _triangle_at(tf, np.uint64(-1 - c1) * _U9, ux, uy, uz, ox, oy, oz, sx, sy, sz, t_min, distance, cull, inf)  # fmt: skip
                 if ok0 or ok1:
                     if t1 < t0:
                         best_t, best_leaf = t1, -1 - c1
