@@ -329,6 +329,32 @@ def test_keyframe_motion_equals_the_portable_path(spec, monkeypatch):
     assert calls and all(calls)  # the compiled loop traced them, with motion
 
 
+def test_keyframe_motion_in_float64_equals_the_portable_path(monkeypatch):
+    from jaxrt._src.traversal import cpu_kernel
+
+    calls = []
+    traced = cpu_kernel.trace_flat
+    monkeypatch.setattr(cpu_kernel, "trace_flat", lambda *a: (calls.append(a[MOVING]), traced(*a))[1])
+    with jax.enable_x64(True):
+        rng = np.random.default_rng(12)
+        keys = rng.uniform(-1.0, 1.0, size=(1, 30, 1, 3)) + rng.uniform(-0.6, 0.6, size=(2, 30, 3, 3))
+        spec = rt.MotionSpec(0.5, 2.5, end_border="vanish")
+        structure = rt.build_primitive_structure(
+            rt.MotionTriangleGeometry(keys.reshape(2, -1, 3)), motion=spec, capacity=SMALL_CAPACITY
+        )
+        assert structure.leaf_triangle.dtype == jnp.float64
+        n = 128
+        origin = np.concatenate([rng.uniform(-1.5, 1.5, (n, 2)), np.full((n, 1), 6.0)], axis=-1)
+        direction = np.array([0.0, 0.0, -1.0]) + rng.normal(scale=0.1, size=(n, 3))
+        rays = rt.Ray(origin, direction, time=rng.uniform(0.0, 3.0, n))
+        tags = (rt.tags.primitive_motion, rt.tags.stats)
+        portable, compiled = (rt.Intersector(*tags, backend=b).intersect(rays, structure) for b in ("portable", "cpu"))  # fmt: skip
+        assert compiled.distance.dtype == jnp.float64 and (np.asarray(portable.type) != 0).any()
+        for name in ("type", "distance", "primitive_id", *STATS):
+            np.testing.assert_array_equal(np.asarray(compiled[name]), np.asarray(portable[name]), err_msg=name)
+    assert calls and all(calls)
+
+
 def test_no_recompile_within_a_bucket():
     v, f, origin, direction = _mesh_and_rays(200)
     structure = rt.build_primitive_structure(rt.TriangleGeometry(v, f))
