@@ -78,7 +78,24 @@ def _user_function(ray, candidate):
     [
         (rt.Intersector(), (_info(TRI),), "gpu", False, 0, None),
         (rt.Intersector(), (_info(TRI),), "cpu", False, 3, None),
-        (rt.Intersector(), (_info(TRI),), "cpu", True, 0, "keyframe motion is not covered by the CPU traversal"),
+        (rt.Intersector(), (_info(TRI),), "cpu", True, 0, None),
+        (rt.Intersector(), (_info(TRI, motion=True),), "cpu", False, 0, None),
+        (
+            rt.Intersector(),
+            (_info(TRI),),
+            "cpu",
+            True,
+            2,
+            "keyframe motion in instance structures is not covered by the CPU traversal",
+        ),
+        (
+            rt.Intersector(intersection_functions={0: rt.intersection_functions.disk}),
+            (_info(BOX, motion=True),),
+            "cpu",
+            False,
+            0,
+            "bounding-box geometry in a structure with keyframe motion is not covered by the CPU traversal",
+        ),
         (rt.Intersector(), (_info(TRI, motion=True),), "gpu", False, 0, None),
         (rt.Intersector(), (_info(CURVE),), "cpu", False, 0, "curves are not covered by the CPU traversal"),
         (

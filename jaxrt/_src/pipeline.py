@@ -372,4 +372,5 @@ def cpu_kernel_arguments(structure: Any, rays: Ray, intersector: Any) -> tuple[t
         max_hits=0 if intersector.counts_all else intersector.max_hits,
         count_all=intersector.counts_all,
         analytic=analytic,
+        leaf_motion=gpu.leaf_motion(view),
     )

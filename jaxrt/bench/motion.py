@@ -11,11 +11,12 @@ kernel on the same rays (the kernel alone, ``traversal.gpu.trace_scene``, and th
 of the boxes blended at the middle of each keyframe segment, and of the union boxes, over that of the static
 build. The portable traversal's speed on a slice of the rays is given for reference. Elsewhere the portable
 traversal is timed as before (:func:`portable_main`): speed and the SAH cost of the union boxes and of each
-keyframe's boxes over that of a static build.
+keyframe's boxes over that of a static build; with ``--cpu`` the same rows for the compiled CPU traversal
+(``backend="cpu"``, static and moving).
 
 Usage::
 
-    python -m jaxrt.bench.motion [--segments N] [--rays N] [--rounds 5] [--json PATH] [--portable]
+    python -m jaxrt.bench.motion [--segments N] [--rays N] [--rounds 5] [--json PATH] [--portable | --cpu]
 """
 
 from __future__ import annotations
@@ -219,11 +220,14 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=5, help="timed rounds (each times every structure once)")
     parser.add_argument("--portable-rays", type=int, default=1 << 16, help="GPU: rays of the portable reference (0: none)")  # fmt: skip
     parser.add_argument("--portable", action="store_true", help="time the portable traversal even on a GPU")
+    parser.add_argument("--cpu", action="store_true", help="time the compiled CPU traversal (on the CPU backend)")
     parser.add_argument("--json", metavar="PATH", help="also write the numbers to PATH")
     args = parser.parse_args()
     from jaxrt._src.traversal import gpu
 
-    if not args.portable and gpu.unavailable_reason(rt.Intersector(rt.tags.primitive_motion)) is None:
+    if args.cpu:
+        out = portable_main(args, "cpu")
+    elif not args.portable and gpu.unavailable_reason(rt.Intersector(rt.tags.primitive_motion)) is None:
         out = gpu_main(args)
     else:
         out = portable_main(args)
@@ -232,16 +236,17 @@ def main() -> None:
             json.dump(out, handle, indent=2, default=float)
 
 
-def portable_main(args: argparse.Namespace) -> dict[str, Any]:
-    """The portable traversal on a moving sphere of about ``2 segments**2`` triangles."""
+def portable_main(args: argparse.Namespace, backend: str = "portable") -> dict[str, Any]:
+    """The portable traversal (or ``backend``: ``"cpu"``) on a moving sphere of about ``2 segments**2``
+    triangles."""
     args.segments = args.segments or 224
     args.rays = args.rays or 65536
     vertices, indices = uv_sphere(args.segments)
     rays = camera_rays(args.rays)
-    print(f"{indices.shape[0]} triangles, {rays.shape[0]} rays, backend {jax.default_backend()}")
+    print(f"{indices.shape[0]} triangles, {rays.shape[0]} rays, backend {jax.default_backend()}, {backend} traversal")
     spec = rt.MotionSpec(0.0, 1.0)
-    plain = rt.Intersector(backend="portable")
-    moving = rt.Intersector(rt.tags.primitive_motion, backend="portable")
+    plain = rt.Intersector(backend=backend)
+    moving = rt.Intersector(rt.tags.primitive_motion, backend=backend)
     static = rt.build_primitive_structure(rt.TriangleGeometry(vertices, indices))
     runs = {"static": (lambda: plain.intersect(rays, static).distance, rt.sah_cost(static), None)}
     for keyframes in (2, 4, 8):
@@ -262,8 +267,9 @@ def portable_main(args: argparse.Namespace) -> dict[str, Any]:
             best[name] = min(best[name], time.perf_counter() - start)
     base, base_sah = best["static"], runs["static"][1]
     out: dict[str, Any] = {"backend": jax.default_backend(), "triangles": int(indices.shape[0]), "rays": rays.shape[0]}
+    out["traversal"] = backend
     for name, (_, sah, keyed) in runs.items():
-        out[name] = {"portable_mrays_s": rays.shape[0] / best[name] / 1e6, "sah": float(sah), "sah_keyframes": keyed}
+        out[name] = {f"{backend}_mrays_s": rays.shape[0] / best[name] / 1e6, "sah": float(sah), "sah_keyframes": keyed}
         line = f"{name:11s} {rays.shape[0] / best[name] / 1e6:6.3f} Mrays/s  SAH {sah:7.2f}"
         if keyed is not None:
             line += (

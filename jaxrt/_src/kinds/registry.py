@@ -50,20 +50,23 @@ class Backend:
 
     Attributes:
       name: how messages name it.
-      motion: keyframe motion (primitive and instance) at each ray's time.
+      motion: keyframe motion at each ray's time (primitive motion in a primitive structure at least).
       waves: candidate waves: JAX takes the decisions of user code between the traversal's turns.
+      instanced_motion: keyframe motion in instance structures too (moving instances, or moving primitives
+        below instances).
     """
 
     name: str
     motion: bool
     waves: bool
+    instanced_motion: bool = True
 
 
 #: The compiled traversals: the GPU kernel (:mod:`jaxrt._src.traversal.gpu`) and the CPU traversal
 #: (:mod:`jaxrt._src.traversal.cpu`).
 BACKENDS = {
     "gpu": Backend("GPU kernel", motion=True, waves=True),
-    "cpu": Backend("CPU traversal", motion=False, waves=False),
+    "cpu": Backend("CPU traversal", motion=True, waves=False, instanced_motion=False),
 }
 
 #: Result fields no kind owns, with the tag that asks for each (the kinds' own follow from :data:`KINDS`).
@@ -179,4 +182,6 @@ def declines(
                     return reason
     if moving and not target.motion:
         return f"keyframe motion is not covered by the {name}"
+    if moving and levels and not target.instanced_motion:
+        return f"keyframe motion in instance structures is not covered by the {name}"
     return None

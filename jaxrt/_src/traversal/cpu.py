@@ -14,8 +14,10 @@ The intersector picks this path (``backend="auto"`` or ``"cpu"``) when :func:`un
 :func:`jaxrt._src.pipeline.kernel_declines` finds the scene and intersector covered: triangles, flat or
 instanced at any depth, bounding boxes with the built-in sphere, disk and capped cylinder functions (their
 distances equal the portable path's to rounding: XLA contracts some of their multiply-adds, the loop none),
-nearest and any hit, the ``K`` nearest hits (``max_hits``) and counting, cull modes and windings, ray
-intervals, ray and instance masks, disabled rays and the stats counters, in float32 or float64.
+primitive keyframe motion of triangles in a primitive structure (node boxes and triangles blended at each
+ray's time as the portable step blends them), nearest and any hit, the ``K`` nearest hits (``max_hits``) and
+counting, cull modes and windings, ray intervals, ray and instance masks, disabled rays and the stats
+counters, in float32 or float64.
 
 Composition:
   - ``jax.jit``: the traversal is one host callback; Numba compiles once per dtype (not per shape), and
@@ -53,12 +55,12 @@ from jaxrt._src.traversal.step import HitList
 __all__ = ["constants", "host_scene", "kernel_arguments", "trace_scene", "unavailable_reason"]
 
 #: Base ranks of the callback's arguments (scene arrays, then rays); leading axes beyond them are vmap axes.
-_SCENE_RANKS = (3, 3, 2, 3, 3, 1, 1, 1, 2)
-_RAY_RANKS = (2, 2, 1, 1, 1, 1)
+_SCENE_RANKS = (3, 3, 2, 3, 3, 1, 1, 1, 2, 4, 4, 4, 1, 1, 1)
+_RAY_RANKS = (2, 2, 1, 1, 1, 1, 1)
 #: Position of the first ray argument.
 _RAYS = len(_SCENE_RANKS)
-#: Positions of the float arguments (scene geometry, analytic rows and rays).
-_FLOAT_ARGS = (0, 1, 3, 4, 8, 9, 10, 11, 12)
+#: Positions of the float arguments (scene geometry, analytic rows, keyframes and rays).
+_FLOAT_ARGS = (0, 1, 3, 4, 8, 9, 10, 11, 13, _RAYS, _RAYS + 1, _RAYS + 2, _RAYS + 3, _RAYS + 6)
 #: Rays a thread claims at a time (rays cost unevenly: small claims keep every thread busy to the end).
 CHUNK = 32
 #: Fewest rays per thread worth starting one.
@@ -183,7 +185,7 @@ def _trace(params: tuple, arrays: list[np.ndarray], boxes: np.ndarray | None) ->
             boxes = box_rows(arrays[0], arrays[1])
         run = functools.partial(
             cpu_kernel.trace_flat, *arrays[:4], boxes, *rays, consts, params[0], params[3], bool(params[4]), params[5],
-            counter, CHUNK, n, out[0], out[1], *out[3:],
+            counter, CHUNK, n, out[0], out[1], *out[3:], bool(params[10]), *arrays[9:15], arrays[_RAYS + 6],
         )  # fmt: skip
     else:
         run = functools.partial(cpu_kernel.trace_rays, *arrays, consts, flags, counter, CHUNK, n, *out, *hits)
@@ -355,23 +357,54 @@ def _params(
     max_hits: int | None = None,
     count_all: bool = False,
     analytic: bool = False,
+    motion: bool = False,
 ) -> tuple[int, ...]:
     """The kernel's integer parameters (static); a hit list where ``max_hits`` is given or ``count_all``;
-    ``analytic``: the scene has analytic leaves."""
+    ``analytic``: the scene has analytic leaves; ``motion``: primitive keyframe motion."""
     hit_list = max_hits is not None or count_all
     if hit_list and (any_hit or (count_all and max_hits) or (not count_all and (max_hits or 0) < 1)):
         raise ValueError(
             "traversal.cpu: hit lists need max_hits >= 1 (0 or None with count_all) and no any_hit "
             f"(got max_hits={max_hits}, count_all={count_all}, any_hit={any_hit})"
         )
-    return (int(layout.root), int(layout.primitive_leaves), int(layout.levels), int(layout.stack_size), int(bool(any_hit)), int(cull), int(hit_list), int(max_hits or 0), int(bool(count_all)), int(bool(analytic)))  # fmt: skip
+    return (int(layout.root), int(layout.primitive_leaves), int(layout.levels), int(layout.stack_size), int(bool(any_hit)), int(cull), int(hit_list), int(max_hits or 0), int(bool(count_all)), int(bool(analytic)), int(bool(motion)))  # fmt: skip
 
 
-def _arguments(scene: TraversalScene, origin, direction, t_min, t_max, enabled, mask, floats, rows=None) -> tuple:
+def _motion_arguments(scene: TraversalScene, layout: TraversalLayout, leaf_motion: Any) -> tuple:
+    """The keyframe arguments of :func:`cpu_kernel.trace_rays` (node keys, leaf keys, moving leaves, float and
+    integer parameters); placeholders without primitive motion (``leaf_motion`` ``None``)."""
+    dtype = scene.node_lower.dtype
+    t = np.dtype(dtype).type
+    floats = np.ones(8, dtype)
+    flags = np.zeros(3, np.int32)
+    node_keys = (jnp.zeros((2, 1, 2, 3), dtype),) * 2
+    leaf_keys, moving = jnp.zeros((2, 1, 3, 3), dtype), jnp.zeros((1,), jnp.int32)
+    if leaf_motion is not None:
+        spec, keys = leaf_motion.spec, leaf_motion.triangle
+        leaf_keys, moving = keys.astype(dtype), leaf_motion.moving.astype(jnp.int32)
+        # As keyframe_position rounds them: each float on its own, the span in Python floats first.
+        floats[4:] = [t(spec.start_time), t(spec.end_time), t(spec.end_time - spec.start_time), t(keys.shape[0] - 1)]
+        flags[1:] = [spec.start_border == "vanish", spec.end_border == "vanish"]
+        if scene.node_motion is not None:
+            node_spec, lower = layout.node_spec, scene.node_motion[0]
+            node_keys = tuple(k.astype(dtype) for k in scene.node_motion)
+            span = node_spec.end_time - node_spec.start_time
+            floats[:4] = [t(node_spec.start_time), t(node_spec.end_time), t(span), t(lower.shape[0] - 1)]
+            flags[0] = 1
+    return (*node_keys, leaf_keys, moving, jnp.asarray(floats), jnp.asarray(flags))
+
+
+def _arguments(
+    scene: TraversalScene, origin, direction, t_min, t_max, enabled, mask, floats, rows=None, motion=(), time=None
+) -> tuple:
     """The callback's arguments in the kernel's order; ``floats`` converts the float ones; ``rows``: the
-    analytic leaves' rows (``None``: a placeholder row)."""
+    analytic leaves' rows (``None``: a placeholder row); ``motion``: :func:`_motion_arguments`; ``time``: the
+    rays' times (``None``: zeros, read only with motion)."""
     if rows is None:
         rows = jnp.zeros((1, packed.TRIANGLE_WIDTH), scene.node_lower.dtype)
+    if time is None:
+        time = jnp.zeros(origin.shape[:-1], origin.dtype)
+    node_lower_keys, node_upper_keys, leaf_keys, moving, motion_f, motion_i = motion
     return (
         floats(scene.node_lower),
         floats(scene.node_upper),
@@ -382,9 +415,16 @@ def _arguments(scene: TraversalScene, origin, direction, t_min, t_max, enabled, 
         scene.instance_facing.astype(jnp.int32),
         scene.instance_mask.astype(jnp.uint32),
         floats(rows.astype(scene.node_lower.dtype)),
+        floats(node_lower_keys),
+        floats(node_upper_keys),
+        floats(leaf_keys),
+        moving,
+        floats(motion_f),
+        motion_i,
         *(floats(a) for a in (origin, direction, t_min, t_max)),
         enabled.astype(bool),
         mask.astype(jnp.uint32),
+        floats(time.astype(origin.dtype)),
     )
 
 
@@ -398,13 +438,16 @@ def kernel_arguments(
     max_hits: int | None = None,
     count_all: bool = False,
     analytic: Any = None,
+    leaf_motion: Any = None,
 ) -> tuple[tuple[int, ...], list[np.ndarray]]:
     """``(params, arrays)`` for calling the compiled traversal directly on host arrays (outside ``jit``), as
     :func:`trace_scene` would for ``rays`` (the other arguments as there): for benchmarks
     (:func:`jaxrt._src.pipeline.cpu_kernel_arguments`)."""
-    params = _params(layout, any_hit, cull, max_hits, count_all, analytic is not None)
+    moving = leaf_motion is not None
+    params = _params(layout, any_hit, cull, max_hits, count_all, analytic is not None, moving)
     rows = None if analytic is None else analytic.rows
-    args = _arguments(scene, *rays[:6], lambda a: a, rows)
+    motion = _motion_arguments(scene, layout, leaf_motion)
+    args = _arguments(scene, *rays[:6], lambda a: a, rows, motion, rays.time if moving else None)
     return params, [np.ascontiguousarray(a) for a in args]
 
 
@@ -423,6 +466,8 @@ def trace_scene(
     max_hits: int | None = None,
     count_all: bool = False,
     analytic: Any = None,
+    time: jax.Array | None = None,
+    leaf_motion: Any = None,
     host: Any = None,
 ) -> TraversalResult:
     """Trace rays through a scene of any instance depth with the compiled CPU traversal.
@@ -445,6 +490,10 @@ def trace_scene(
       analytic: the parameter rows of the scene's analytic leaves in the scene's dtype
         (:func:`jaxrt._src.traversal.gpu.analytic_leaves`): bounding-box leaves tested as the built-in
         intersection functions test them.
+      time: ``(N,)`` each ray's time (read with ``leaf_motion`` only).
+      leaf_motion: primitive keyframe motion of a primitive structure of triangles
+        (:func:`jaxrt._src.traversal.gpu.leaf_motion`), or ``None``: node boxes (``scene.node_motion``) and
+        triangles are blended at each ray's time as the portable step blends them.
       host: ``None``, or the addresses of ``scene``'s node and triangle arrays and maybe of the rays, with
         the structure's box rows (:func:`host_scene`): the arrays of a primitive structure and rays passed to
         the running program, read in place (a disabled ray's own values are read, and skipped).
@@ -457,13 +506,19 @@ def trace_scene(
     if origin.dtype != dtype:
         raise ValueError(f"traversal.cpu.trace_scene: rays are {origin.dtype} but the scene is {dtype}")
     levels = int(layout.levels)
-    params = _params(layout, any_hit, cull, max_hits, count_all, analytic is not None)
+    moving = leaf_motion is not None
+    if moving and levels:
+        raise ValueError("traversal.cpu.trace_scene: keyframe motion is traced in primitive structures only")
+    params = _params(layout, any_hit, cull, max_hits, count_all, analytic is not None, moving)
     hit_list, k = bool(params[6]), params[7]
     detached = lax.stop_gradient
     wide = jnp.dtype(dtype).itemsize == 8
     words = lambda a: lax.bitcast_convert_type(detached(a).astype(dtype), jnp.uint32) if wide else detached(a)  # noqa: E731
     rows = None if analytic is None else analytic.rows
-    args = _arguments(scene, origin, direction, t_min, t_max, enabled, mask, words, rows)
+    motion = jax.tree_util.tree_map(detached, _motion_arguments(scene, layout, leaf_motion))
+    args = _arguments(
+        scene, origin, direction, t_min, t_max, enabled, mask, words, rows, motion, time if moving else None
+    )
     n = origin.shape[0]
     shapes = (
         jax.ShapeDtypeStruct((n, 2), jnp.uint32) if wide else jax.ShapeDtypeStruct((n,), dtype),
@@ -483,7 +538,7 @@ def trace_scene(
     hosted = None
     if host is not None:  # arrays read in place (see host_scene): the scene's, and maybe the rays'
         host, boxes = host
-        in_place = (0, 1, 2, 3) if host.shape[0] == 4 else (0, 1, 2, 3, 9, 10, 11, 12)
+        in_place = (0, 1, 2, 3) if host.shape[0] == 4 else (0, 1, 2, 3, _RAYS, _RAYS + 1, _RAYS + 2, _RAYS + 3)
         sources = (scene.node_lower, scene.node_upper, scene.node_children, scene.leaf_triangle, origin, direction, t_min, t_max)  # fmt: skip
         hosted = tuple(
             (i, tuple(a.shape), jnp.dtype(a.dtype).name)

@@ -298,10 +298,67 @@ def _insert(hit_distance, hit_leaf, hit_chains, k, t, leaf, chain, level, levels
     return 1
 
 
+@numba.njit(cache=True, inline="always")
+def _keyframe_position(time, start, end, span, segments, vanish_start, vanish_end, one):
+    """:func:`jaxrt._src.motion.keyframe_position` for one ray: ``(index, weight, visible)`` (``span`` is
+    ``end - start`` rounded from the spec's floats, ``segments`` is ``K - 1``, both in the time's dtype)."""
+    position = (time - start) / span * segments
+    if np.isnan(position):  # NaN times take keyframe 0
+        position = one - one
+    clamped = min(max(position, one - one), segments)
+    # The clipped floor as a float (a whole number, exact), so that the weight stays in the time's dtype.
+    key = min(max(np.floor(clamped), one - one), segments - one)
+    visible = not (time < start and vanish_start) and not (time > end and vanish_end)
+    return np.int64(key), clamped - key, visible
+
+
+@numba.njit(cache=True, inline="always")
+def _blend(a, b, w, one):
+    """:func:`jaxrt._src.motion.blend`, ``(1 - w) a + w b``, as XLA's CPU backend contracts it:
+    ``fma(1 - w, a, w b)``."""
+    return _fma(one - w, a, w * b)
+
+
+@numba.njit(cache=True, inline="always")
+def _node_keys(lower, upper, key, node, w, one, out):
+    """Node ``node``'s two child boxes blended between keyframes ``key`` and ``key + 1`` (the portable
+    ``_node_boxes_at``: equal corners kept as they are) into ``out``: both lowers, then both uppers."""
+    for c in range(2):
+        for a in range(3):
+            x, y = lower[key, node, c, a], lower[key + 1, node, c, a]
+            out[3 * c + a] = x if x == y else _blend(x, y, w, one)
+            x, y = upper[key, node, c, a], upper[key + 1, node, c, a]
+            out[6 + 3 * c + a] = x if x == y else _blend(x, y, w, one)
+
+
+@numba.njit(cache=True, inline="always")
+def _leaf_keys(keys, key, leaf, w, one, out):
+    """Leaf ``leaf``'s triangle blended between keyframes ``key`` and ``key + 1`` into ``out`` (nine values)."""
+    for v in range(3):
+        for a in range(3):
+            out[3 * v + a] = _blend(keys[key, leaf, v, a], keys[key + 1, leaf, v, a], w, one)
+
+
+@numba.njit(cache=True, inline="always")
+def _box_row(boxes, row, nan):
+    """Two boxes as :func:`_node_keys` writes them, laid out as one row of :func:`box_rows` (an empty box's x
+    bounds NaN)."""
+    for a in range(3):
+        row[4 * a] = boxes[a]
+        row[4 * a + 1] = boxes[3 + a]
+        row[4 * a + 2] = boxes[6 + a]
+        row[4 * a + 3] = boxes[9 + a]
+    for k in range(2):
+        if not boxes[3 * k] <= boxes[6 + 3 * k]:
+            row[k] = nan
+            row[2 + k] = nan
+
+
 @numba.njit(nogil=True, cache=True)
 def trace_rays(
     node_lower, node_upper, node_children, leaf_triangle, world_to_object, child_root, instance_facing,
-    instance_mask, analytic_rows, origin, direction, t_min_all, t_max_all, enabled, mask_all, consts, params, counter, chunk, end, out_distance,
+    instance_mask, analytic_rows, node_keys_lower, node_keys_upper, leaf_keys, leaf_moving, motion_f, motion_i,
+    origin, direction, t_min_all, t_max_all, enabled, mask_all, time_all, consts, params, counter, chunk, end, out_distance,
     out_leaf, out_chain, out_visited, out_tested, out_overflow, out_hit_distance, out_hit_leaf, out_hit_total,
     out_hit_chain,
 ):  # fmt: skip
@@ -316,9 +373,20 @@ def trace_rays(
     ``out_hit_*`` (``(end, K)``, ``(end, K)``, ``(end,)``, ``(end, K, levels)``) as the portable
     :class:`~jaxrt._src.traversal.step.HitList` keeps them; ``out_distance`` is then the culling distance and
     ``out_leaf`` the first hit.
+
+    With ``params[10]`` (primitive keyframe motion, no instances) each ray's node boxes and triangles are the
+    keyframes blended at its time ``time_all[i]`` (:func:`_keyframe_position`, :func:`_blend`): the node boxes
+    ``node_keys_*`` ``(K, M, 2, 3)`` where ``motion_i[0]``, the triangles ``leaf_keys`` ``(L, P, 3, 3)``, and
+    moving leaves (``leaf_moving``) vanish outside the range on a ``"vanish"`` border. ``motion_f`` holds
+    the node then the leaf keyframes' ``start, end, end - start, K - 1`` in the geometry's dtype, ``motion_i``
+    whether nodes move, vanish at start, vanish at end.
     """
     root, primitive_leaves, levels, stack_size, any_hit, cull = params[0], params[1], params[2], params[3], params[4] != 0, params[5]  # fmt: skip
     hit_list, k, count_all, analytic = params[6] != 0, params[7], params[8] != 0, params[9] != 0
+    moving, nodes_move = params[10] != 0, motion_i[0] != 0
+    vanish_start, vanish_end = motion_i[1] != 0, motion_i[2] != 0
+    key_v = np.empty(9, consts.dtype)
+    key_b = np.empty(12, consts.dtype)
     hit_distance = np.empty(max(k, 1), consts.dtype)
     hit_leaf = np.empty(max(k, 1), np.int32)
     hit_chains = np.empty((max(k, 1), max(levels, 1)), np.int32)
@@ -361,6 +429,11 @@ def trace_rays(
             o0, o1, o2 = origin[i, 0], origin[i, 1], origin[i, 2]
             w0, w1, w2 = direction[i, 0], direction[i, 1], direction[i, 2]  # the loaded direction
             i0, i1, i2, kx, ky, kz, sx, sy, sz = _load(o0, o1, o2, w0, w1, w2, one, clamp, huge, clamped_huge)
+            node_key, node_w, leaf_key, leaf_w, visible = 0, one, 0, one, True
+            if moving:
+                time = time_all[i]
+                node_key, node_w, _ = _keyframe_position(time, motion_f[0], motion_f[1], motion_f[2], motion_f[3], False, False, one)  # fmt: skip
+                leaf_key, leaf_w, visible = _keyframe_position(time, motion_f[4], motion_f[5], motion_f[6], motion_f[7], vanish_start, vanish_end, one)  # fmt: skip
             facing = 1
             node = root
             depth = 0
@@ -384,8 +457,13 @@ def trace_rays(
                 c0 = cf[un * _U2]
                 c1 = cf[un * _U2 + _U1]
                 b = un * _U6
-                hit0, near0 = _box(lf[b], lf[b + _U1], lf[b + _U2], hf[b], hf[b + _U1], hf[b + _U2], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
-                hit1, near1 = _box(lf[b + _U3], lf[b + _U4], lf[b + _U5], hf[b + _U3], hf[b + _U4], hf[b + _U5], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
+                if moving and nodes_move:  # the node's keyframe boxes blended at the ray's time
+                    _node_keys(node_keys_lower, node_keys_upper, node_key, node, node_w, one, key_b)
+                    hit0, near0 = _box(key_b[0], key_b[1], key_b[2], key_b[6], key_b[7], key_b[8], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
+                    hit1, near1 = _box(key_b[3], key_b[4], key_b[5], key_b[9], key_b[10], key_b[11], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
+                else:
+                    hit0, near0 = _box(lf[b], lf[b + _U1], lf[b + _U2], hf[b], hf[b + _U1], hf[b + _U2], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
+                    hit1, near1 = _box(lf[b + _U3], lf[b + _U4], lf[b + _U5], hf[b + _U3], hf[b + _U4], hf[b + _U5], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
                 # Leaf children: primitives are tested now, instances are entered like inner children (when visible).
                 k0 = -1 - c0
                 k1 = -1 - c1
@@ -404,6 +482,12 @@ def trace_rays(
                             tested += 1
                             if analytic and analytic_rows[k0, 3] != 0:
                                 ok0, t0 = _analytic(analytic_rows[k0], o0, o1, o2, w0, w1, w2, t_min, distance, one, inf)  # fmt: skip
+                            elif moving:  # the triangle blended at the ray's time; a moving one may vanish
+                                _leaf_keys(leaf_keys, leaf_key, k0, leaf_w, one, key_v)
+                                v = (key_v[0], key_v[1], key_v[2], key_v[3], key_v[4], key_v[5], key_v[6], key_v[7], key_v[8])  # fmt: skip
+                                ok0, t0 = _triangle(v, o0, o1, o2, kx, ky, kz, sx, sy, sz, t_min, distance, sense, inf)  # fmt: skip
+                                if not visible and leaf_moving[k0]:
+                                    ok0, t0 = False, inf
                             else:
                                 q = np.uint64(k0) * _U9
                                 v = (tf[q], tf[q + _U1], tf[q + _U2], tf[q + _U3], tf[q + _U4], tf[q + _U5], tf[q + _U6], tf[q + _U7], tf[q + _U8])  # fmt: skip
@@ -418,6 +502,12 @@ def trace_rays(
                             tested += 1
                             if analytic and analytic_rows[k1, 3] != 0:
                                 ok1, t1 = _analytic(analytic_rows[k1], o0, o1, o2, w0, w1, w2, t_min, distance, one, inf)  # fmt: skip
+                            elif moving:  # the triangle blended at the ray's time; a moving one may vanish
+                                _leaf_keys(leaf_keys, leaf_key, k1, leaf_w, one, key_v)
+                                v = (key_v[0], key_v[1], key_v[2], key_v[3], key_v[4], key_v[5], key_v[6], key_v[7], key_v[8])  # fmt: skip
+                                ok1, t1 = _triangle(v, o0, o1, o2, kx, ky, kz, sx, sy, sz, t_min, distance, sense, inf)  # fmt: skip
+                                if not visible and leaf_moving[k1]:
+                                    ok1, t1 = False, inf
                             else:
                                 q = np.uint64(k1) * _U9
                                 v = (tf[q], tf[q + _U1], tf[q + _U2], tf[q + _U3], tf[q + _U4], tf[q + _U5], tf[q + _U6], tf[q + _U7], tf[q + _U8])  # fmt: skip
@@ -533,13 +623,20 @@ def trace_rays(
 def trace_flat(
     node_lower, node_upper, node_children, leaf_triangle, rows, origin, direction, t_min_all, t_max_all, enabled,
     consts, root, stack_size, any_hit, cull, counter, chunk, end, out_distance, out_leaf, out_visited, out_tested,
-    out_overflow,
+    out_overflow, moving, node_keys_lower, node_keys_upper, leaf_keys, leaf_moving, motion_f, motion_i, time_all,
 ):  # fmt: skip
     """:func:`trace_rays` for a primitive structure of triangles (no instance levels, no hit list, no analytic
     leaves): the same loop without the instance, hit-list and analytic bookkeeping, and the same results. The
     instance chain (zero columns) is not written. ``rows`` holds the node boxes as :func:`box_rows` lays them
-    out, for the vector test; the scalar test reads ``node_lower`` and ``node_upper``."""
+    out, for the vector test; the scalar test reads ``node_lower`` and ``node_upper``. With ``moving``, the
+    primitive keyframe motion of :func:`trace_rays` (its ``node_keys_*`` to ``time_all`` arguments): each
+    visited node's boxes and each tested triangle are blended at the ray's time first."""
     stack = np.empty(max(stack_size, 1), np.int32)
+    nodes_move, vanish_start, vanish_end = motion_i[0] != 0, motion_i[1] != 0, motion_i[2] != 0
+    key_b = np.empty(12, consts.dtype)  # a node's boxes blended: lowers, then uppers (as _node_keys writes them)
+    key_r = np.empty(12, consts.dtype)  # the same as a row of :func:`box_rows`
+    key_v = np.empty(9, consts.dtype)
+    nan = consts[0] * np.nan
     one, inf, clamp, huge, clamped_huge = consts[0], consts[2], consts[3], consts[4], consts[5]
     far_scale, parallel = consts[6], consts[7]
     lf, hf, cf, tf = node_lower.reshape(-1), node_upper.reshape(-1), node_children.reshape(-1), leaf_triangle.reshape(-1)  # fmt: skip
@@ -565,6 +662,11 @@ def trace_flat(
             ox, oy, oz = _pick(kx, o0, o1, o2), _pick(ky, o0, o1, o2), _pick(kz, o0, o1, o2)
             ux, uy, uz = np.uint64(kx), np.uint64(ky), np.uint64(kz)
             straight = abs(i0) < parallel and abs(i1) < parallel and abs(i2) < parallel
+            node_key, node_w, leaf_key, leaf_w, visible = 0, one, 0, one, True
+            if moving:
+                time = time_all[i]
+                node_key, node_w, _ = _keyframe_position(time, motion_f[0], motion_f[1], motion_f[2], motion_f[3], False, False, one)  # fmt: skip
+                leaf_key, leaf_w, visible = _keyframe_position(time, motion_f[4], motion_f[5], motion_f[6], motion_f[7], vanish_start, vanish_end, one)  # fmt: skip
             node = root
             depth = 0
             visited = 0
@@ -576,7 +678,15 @@ def trace_flat(
                 c0 = cf[un * _U2]
                 c1 = cf[un * _U2 + _U1]
                 b = un * _U6
-                if straight:
+                if moving and nodes_move:  # the node's keyframe boxes blended at the ray's time
+                    _node_keys(node_keys_lower, node_keys_upper, node_key, node, node_w, one, key_b)
+                    if straight:
+                        _box_row(key_b, key_r, nan)
+                        hit0, near0, hit1, near1 = _box_pair(key_r, _U1 - _U1, o0, o1, o2, i0, i1, i2, t_min, distance, far_scale)  # fmt: skip
+                    else:
+                        hit0, near0 = _box(key_b[0], key_b[1], key_b[2], key_b[6], key_b[7], key_b[8], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
+                        hit1, near1 = _box(key_b[3], key_b[4], key_b[5], key_b[9], key_b[10], key_b[11], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
+                elif straight:
                     hit0, near0, hit1, near1 = _box_pair(rf, un * _U12, o0, o1, o2, i0, i1, i2, t_min, distance, far_scale)  # fmt: skip
                 else:
                     hit0, near0 = _box(lf[b], lf[b + _U1], lf[b + _U2], hf[b], hf[b + _U1], hf[b + _U2], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
@@ -587,10 +697,22 @@ def trace_flat(
                 t1 = inf
                 if c0 < 0 and hit0:
                     tested += 1
-                    ok0, t0 = _triangle_at(tf, np.uint64(-1 - c0) * _U9, ux, uy, uz, ox, oy, oz, sx, sy, sz, t_min, distance, cull, inf)  # fmt: skip
+                    if moving:  # the triangle blended at the ray's time; a moving one may vanish
+                        _leaf_keys(leaf_keys, leaf_key, -1 - c0, leaf_w, one, key_v)
+                        ok0, t0 = _triangle_at(key_v, _U1 - _U1, ux, uy, uz, ox, oy, oz, sx, sy, sz, t_min, distance, cull, inf)  # fmt: skip
+                        if not visible and leaf_moving[-1 - c0]:
+                            ok0, t0 = False, inf
+                    else:
+                        ok0, t0 = _triangle_at(tf, np.uint64(-1 - c0) * _U9, ux, uy, uz, ox, oy, oz, sx, sy, sz, t_min, distance, cull, inf)  # fmt: skip
                 if c1 < 0 and hit1:
                     tested += 1
-                    ok1, t1 = _triangle_at(tf, np.uint64(-1 - c1) * _U9, ux, uy, uz, ox, oy, oz, sx, sy, sz, t_min, distance, cull, inf)  # fmt: skip
+                    if moving:
+                        _leaf_keys(leaf_keys, leaf_key, -1 - c1, leaf_w, one, key_v)
+                        ok1, t1 = _triangle_at(key_v, _U1 - _U1, ux, uy, uz, ox, oy, oz, sx, sy, sz, t_min, distance, cull, inf)  # fmt: skip
+                        if not visible and leaf_moving[-1 - c1]:
+                            ok1, t1 = False, inf
+                    else:
+                        ok1, t1 = _triangle_at(tf, np.uint64(-1 - c1) * _U9, ux, uy, uz, ox, oy, oz, sx, sy, sz, t_min, distance, cull, inf)  # fmt: skip
                 if ok0 or ok1:
                     if t1 < t0:
                         best_t, best_leaf = t1, -1 - c1
