@@ -342,17 +342,21 @@ def test_gradients_through_the_kernel_path(kernel_here, monkeypatch):
 # --- coverage (no kernel run) -------------------------------------------------------------------------------------
 
 
-def test_motion_is_declined_only_by_the_cpu_traversal():
+def test_motion_in_instance_structures_is_declined_only_by_the_cpu_traversal():
+    """The kernel covers keyframe motion everywhere; the CPU traversal covers moving triangles in primitive
+    structures (tests/test_cpu_backend.py) and declines keyframe motion below instances."""
     rng = np.random.default_rng(50)
     structure = moving_mesh(rng, 2, SPECS[0], count=2)
     infos = structure.geometry_info
     intersector = rt.Intersector(rt.tags.primitive_motion)
     assert pipeline.kernel_declines(intersector, infos) is None
     assert pipeline.kernel_declines(intersector, infos, "gpu", True) is None
-    reason = "keyframe motion is not covered by the CPU traversal"
-    assert pipeline.kernel_declines(intersector, infos, "cpu") == reason
-    assert pipeline.kernel_declines(rt.Intersector(), static_mesh(rng).geometry_info, "cpu", True) == reason
-    assert pipeline.kernel_declines(rt.Intersector(max_hits=2), infos, "cpu").endswith("by the CPU traversal")
+    assert pipeline.kernel_declines(intersector, infos, "gpu", True, levels=1) is None
+    assert pipeline.kernel_declines(intersector, infos, "cpu") is None
+    assert pipeline.kernel_declines(rt.Intersector(max_hits=2), infos, "cpu") is None
+    reason = "keyframe motion in instance structures is not covered by the CPU traversal"
+    assert pipeline.kernel_declines(intersector, infos, "cpu", levels=1) == reason
+    assert pipeline.kernel_declines(rt.Intersector(), static_mesh(rng).geometry_info, "cpu", True, levels=1) == reason
     assert {"primitive_motion", "instance_motion"} <= gpu.COVERED_TAGS
 
 
