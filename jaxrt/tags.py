@@ -14,6 +14,7 @@ __all__ = [
     "Tag",
     "triangle_data",
     "curve_data",
+    "sphere_data",
     "instancing",
     "max_levels",
     "world_space_data",
@@ -38,6 +39,9 @@ triangle_data = Tag("triangle_data")
 """Adds ``triangle_barycentric_coord`` ``(..., 2)`` and ``triangle_front_facing`` to the result."""
 curve_data = Tag("curve_data")
 """Adds ``curve_parameter`` (curve geometry)."""
+sphere_data = Tag("sphere_data")
+"""Adds ``sphere_front_facing`` (sphere geometry): true where the ray enters the sphere at the hit, false where it
+leaves it (a ray that starts inside the sphere, or enters it before its ``min_distance``); false off spheres."""
 instancing = Tag("instancing")
 """Allows instance structures; adds ``instance_id`` and ``user_instance_id`` ``(..., n)`` and ``instance_count``
 (``n`` from :func:`max_levels`, 1 without it)."""
@@ -61,7 +65,8 @@ not flipped towards the ray): with the winding convention of ``docs/design.md`` 
 (``dot(normal, direction) > 0``) when the triangle is seen clockwise, against it when counterclockwise; use
 ``rt.shading.face_forward`` for a normal facing the viewer. Round curves give the tube's outward surface
 normal (end spheres: outward; end disks: the end tangent, out of the tube); flat curves, which face the ray,
-the ribbon normal towards the ray origin (ray-facing end disks: ``-direction``). Bounding-box hits give
+the ribbon normal towards the ray origin (ray-facing end disks: ``-direction``). Spheres give the outward
+normal, also where a ray from inside leaves the sphere. Bounding-box hits give
 zeros: the surface is the intersection function's, unknown to the library. Misses give zeros (with
 ``type == IntersectionType.NONE``). Through instances, object-space normals are transformed by the inverse
 transpose of the chain's object-to-world transform, then normalised (a mirroring instance keeps outward
@@ -83,6 +88,7 @@ KNOWN = frozenset(
     [
         "triangle_data",
         "curve_data",
+        "sphere_data",
         "instancing",
         "max_levels",
         "world_space_data",

@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.experimental import io_callback
 
-from jaxrt._src.kinds.registry import BOUNDING_BOX, CURVE, TRIANGLE
+from jaxrt._src.kinds.registry import BOUNDING_BOX, CURVE, SPHERE, TRIANGLE
 
 
 class BuildCheckError(ValueError):
@@ -159,7 +159,7 @@ def _not_finite(array: jax.Array) -> jax.Array:
 
 
 def geometry_rules(geometries: Sequence[Any], owner: str) -> list[_Rule]:
-    """The rules of triangle, curve and bounding-box geometries (by the attributes each kind has)."""
+    """The rules of triangle, curve, bounding-box and sphere geometries (by the attributes each kind has)."""
     rules = []
     for g, geometry in enumerate(geometries):
         name = f"{owner}: geometries[{g}] ({type(geometry).__name__})"
@@ -192,6 +192,11 @@ def geometry_rules(geometries: Sequence[Any], owner: str) -> list[_Rule]:
             rules.append(_Rule(name + " box {index} (lower, upper) = {value} is not finite", _not_finite(box), box))
             inverted = jnp.any(geometry.lower > geometry.upper, axis=-1)
             rules.append(_Rule(name + " box {index} (lower, upper) = {value} has lower > upper", inverted, box))
+        elif SPHERE.holds(geometry):
+            centers, radii = geometry.centers, geometry.radii
+            rules.append(_Rule(name + " centers[{index}] = {value} is not finite", _not_finite(centers), centers))
+            bad_radius = ~jnp.isfinite(radii) | ~(radii >= 0)
+            rules.append(_Rule(name + " radii[{index}] = {value} is negative or not finite", bad_radius, radii))
     return rules
 
 

@@ -4,9 +4,10 @@ The traversal only picks the hit (detached). The chosen primitive is then inters
 ray moved into the hit's object space level by level as the traversal did: exact values come from the test
 the traversal ran, gradients from a smooth formula (triangles: a world-space re-intersection with the vertices
 moved by the chain's composed object-to-world transform), the curve's smooth hit, or the user's intersection
-function called again. So distances, barycentrics, curve parameters, box distances, normals and world-space
-transforms differentiate with respect to vertices, control points, radii, instance transforms and rays,
-holding the hit fixed. A scene without instances compiles none of the transform code.
+function called again, the sphere test run again. So distances, barycentrics, curve parameters, box distances,
+normals and world-space transforms differentiate with respect to vertices, control points, sphere centres,
+radii, instance transforms and rays, holding the hit fixed. A scene without instances compiles none of the
+transform code.
 """
 
 from __future__ import annotations
@@ -21,7 +22,8 @@ from jax import lax
 from jaxrt._src import curves as curve_support
 from jaxrt._src import leaves as leaf_tests
 from jaxrt._src import normals as hit_normals
-from jaxrt._src.kinds.registry import BOUNDING_BOX, CURVE
+from jaxrt._src.kinds import sphere as sphere_kind
+from jaxrt._src.kinds.registry import BOUNDING_BOX, CURVE, SPHERE
 from jaxrt._src.primitive_data import data_at
 from jaxrt._src.primitives import curve as primitive
 from jaxrt._src.primitives import triangle
@@ -161,6 +163,25 @@ def _box_distance(intersector, view, leaf, is_box, origin, direction, t_min, t_m
     return jnp.where(is_box, attached, jnp.inf)
 
 
+def _sphere_hits(rows, is_sphere, origin, direction, t_min, t_max, distance):
+    """Sphere hits: ``(distance, front, normal)``, the traversal's distance with the gradient of the sphere
+    test run again (in object space, on the ray's own interval, so it takes the same root); ``normal`` the
+    outward object-space normal at that distance (unnormalised). Other lanes test a dummy sphere (no NaN in
+    their zero gradients)."""
+    detached = lax.stop_gradient
+    dummy = sphere_kind.rows(jnp.zeros((1, 3), rows.dtype), jnp.ones((1,), rows.dtype))[0]
+    rows = jnp.where(is_sphere[:, None, None], rows, dummy)
+    origin = jnp.where(is_sphere[:, None], origin, jnp.array([0.0, 0.0, -2.0], origin.dtype))
+    direction = jnp.where(is_sphere[:, None], direction, jnp.array([0.0, 0.0, 1.0], direction.dtype))
+    lo = jnp.where(is_sphere, t_min, 0.0)
+    hi = jnp.where(is_sphere, detached(t_max), jnp.inf)
+    accept, smooth, front = sphere_kind.intersect(origin, direction, lo, hi, rows)
+    smooth = jnp.where(accept, smooth, 1.0)
+    attached = detached(distance) + jnp.where(accept, smooth - detached(smooth), 0.0)
+    normal = sphere_kind.normal(origin, direction, jnp.where(is_sphere, attached, 1.0), rows)
+    return jnp.where(is_sphere, attached, jnp.inf), is_sphere & detached(front), normal
+
+
 def hit_fields(
     intersector: Any,
     view: SceneView,
@@ -206,6 +227,14 @@ def hit_fields(
         hit = hit & ~is_box
         kind = jnp.where(is_box, int(IntersectionType.BOUNDING_BOX), kind)
         exact_distance = jnp.where(is_box, box_t, exact_distance)
+    if SPHERE.name in kinds:  # sphere hits: re-tested (in object space) differentiably
+        is_sphere = found & view.leaf_flag(view.slot_table(view.slots_where(SPHERE.holds)), leaf)
+        sphere_t, sphere_front, sphere_normal = _sphere_hits(
+            leaves.triangle[leaf], is_sphere, object_origin, object_direction, t_min, t_max, distance
+        )
+        hit = hit & ~is_sphere
+        kind = jnp.where(is_sphere, int(IntersectionType.SPHERE), kind)
+        exact_distance = jnp.where(is_sphere, sphere_t, exact_distance)
     kind = jnp.where(hit, int(IntersectionType.TRIANGLE), kind)
 
     # Re-intersect the chosen triangle: exact values from the watertight test (in object space), gradients from
@@ -245,6 +274,8 @@ def hit_fields(
         fields["curve_parameter"] = (
             jnp.where(is_curve, curve_u, 0.0) if CURVE.name in kinds else jnp.zeros_like(distance)
         )
+    if intersector.has("sphere_data"):
+        fields["sphere_front_facing"] = sphere_front if SPHERE.name in kinds else jnp.zeros(found.shape, bool)
     if intersector.has("primitive_data"):
         fields["primitive_data"] = data_at(leaves.primitive_data, leaf, found)
     if intersector.has("instancing"):
@@ -258,6 +289,8 @@ def hit_fields(
                 view, leaf, is_curve, curve_part, curve_u, curve_t, object_origin, object_direction
             )
             normal = jnp.where(is_curve[:, None], curve_normal, normal)
+        if SPHERE.name in kinds:
+            normal = jnp.where(is_sphere[:, None], sphere_normal, normal)
         if transforms is not None:
             normal = hit_normals.to_world(normal, transforms.world_to_object)
         fields["normal"] = hit_normals.unit(normal)

@@ -25,7 +25,8 @@ from jax import lax
 
 from jaxrt._src import curves as curve_support
 from jaxrt._src.candidate import BoundingBoxCandidate, TriangleCandidate
-from jaxrt._src.kinds.registry import BOUNDING_BOX, CURVE, TRIANGLE
+from jaxrt._src.kinds import sphere as sphere_kind
+from jaxrt._src.kinds.registry import BOUNDING_BOX, CURVE, SPHERE, TRIANGLE
 from jaxrt._src.primitive_data import data_at
 from jaxrt._src.primitives import triangle
 from jaxrt._src.ray import Ray
@@ -36,6 +37,7 @@ __all__ = [
     "FilteredTriangleLeaves",
     "KindSwitch",
     "MotionLeaves",
+    "SphereLeaves",
     "TriangleLeaves",
     "box_candidate",
     "box_slots",
@@ -186,6 +188,47 @@ class BoxLeaves:
         return jax.vmap(one)(leaves)
 
 
+class SphereLeaves:
+    """Built-in spheres (:func:`jaxrt._src.formulas.sphere.ray_sphere`); hits on non-opaque spheres must pass
+    the intersector's filter where it has one (a :class:`~jaxrt.TriangleCandidate` with zero barycentrics)."""
+
+    def __init__(self, view: SceneView, rows: Any, filter_fn: Callable | None = None):
+        self.view = view
+        self.rows = rows
+        self.filter_fn = filter_fn
+        if filter_fn is not None:
+            self.non_opaque = view.slot_table(view.slots_where(lambda g: SPHERE.holds(g) and not g.opaque))
+            self.leaf_data = jax.tree_util.tree_map(lax.stop_gradient, view.leaves.primitive_data)
+
+    def prepare(self, origin, direction, facing):
+        del facing  # culling applies to triangles only
+        return origin, direction
+
+    def __call__(self, context, leaves, t_min, t_max):
+        origin, direction = context
+        k = jnp.maximum(leaves, 0)
+        hit, distance, front = sphere_kind.intersect(origin, direction, t_min, t_max, self.rows[k])
+        hit = hit & (leaves >= 0)
+        if self.filter_fn is not None:
+            leaf_arrays = self.view.leaves
+
+            def one(leaf, ok, t, front):
+                k = jnp.maximum(leaf, 0)
+                candidate = TriangleCandidate(
+                    leaf_arrays.primitive[k],
+                    leaf_arrays.geometry[k],
+                    t,
+                    jnp.zeros((2,), t.dtype),
+                    front,
+                    data_at(self.leaf_data, k),
+                )
+                filtered = self.view.leaf_flag(self.non_opaque, leaf) & ok
+                return ok & (~filtered | jnp.asarray(self.filter_fn(candidate), bool))
+
+            hit = jax.vmap(one)(leaves, hit, distance, front)
+        return hit, jnp.where(hit, distance, jnp.inf)
+
+
 class KindSwitch:
     """Several kinds in one scene: every kind's test runs, and each leaf takes its own kind's answer."""
 
@@ -238,7 +281,7 @@ class MotionLeaves:
 
 
 def leaf_tester(intersector: Any, view: SceneView, *, user_code: bool = True) -> Any:
-    """The leaf tests the scene's kinds need: triangles (filtered where non-opaque), curves, boxes; with
+    """The leaf tests the scene's kinds need: triangles (filtered where non-opaque), curves, spheres, boxes; with
     primitive motion, on the leaves blended at each ray's time (:class:`MotionLeaves`).
 
     Without ``user_code`` neither the filter nor intersection functions are called: box leaves never hit and
@@ -265,6 +308,10 @@ def _static_tester(intersector: Any, view: SceneView, user_code: bool) -> Any:
     if CURVE.name in kinds:
         config = curve_configuration(intersector, view)
         testers[CURVE.name] = curve_support.CurveLeaves(detached(view.leaves.curve), view.leaves.curve_flags, **config)
+    if SPHERE.name in kinds:
+        non_opaque = any(SPHERE.holds(g) and not g.opaque for g in view.geometry_info)
+        filter_fn = intersector.filter if user_code and non_opaque else None
+        testers[SPHERE.name] = SphereLeaves(view, detached(view.leaves.triangle), filter_fn)
     if BOUNDING_BOX.name in kinds and user_code:
         testers[BOUNDING_BOX.name] = BoxLeaves(view, intersector.intersection_functions or ())
     if len(testers) == 1 and set(testers) == set(kinds):

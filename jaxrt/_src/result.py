@@ -24,6 +24,8 @@ class IntersectionType(enum.IntEnum):
     """A bounding-box primitive, accepted by its intersection function."""
     CURVE = 3
     """A curve segment."""
+    SPHERE = 4
+    """A built-in sphere (``rt.SphereGeometry``)."""
 
 
 #: The tag that adds each optional result field (the kinds' own and the scene's,

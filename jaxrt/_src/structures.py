@@ -79,11 +79,12 @@ from jaxrt._src.checks import check_geometries
 from jaxrt._src.curves import CurveGeometry, CurveInfo, MotionCurveGeometry, curve_leaves
 from jaxrt._src.geometry import BoundingBoxGeometry, MotionBoundingBoxGeometry, MotionTriangleGeometry, TriangleGeometry
 from jaxrt._src.kinds import registry
-from jaxrt._src.kinds.registry import BOUNDING_BOX, CURVE, TRIANGLE
+from jaxrt._src.kinds.registry import BOUNDING_BOX, CURVE, SPHERE, TRIANGLE
 from jaxrt._src.motion import MotionSpec, motion_bounds
 from jaxrt._src.numerics import full_precision
 from jaxrt._src.primitive_data import gather_leaf_data, primitive_data_layout
 from jaxrt._src.primitives import triangle
+from jaxrt._src.spheres import MotionSphereGeometry, SphereGeometry
 
 __all__ = [
     "PrimitiveAccelerationStructure",
@@ -172,8 +173,8 @@ def capacity_bucket(count: int, capacity: int | None = None) -> int:
     return max(2, 1 << (max(count, 1) - 1).bit_length())
 
 
-_MOTION_CLASSES = (MotionTriangleGeometry, MotionCurveGeometry, MotionBoundingBoxGeometry)
-_GEOMETRY_CLASSES = (TriangleGeometry, CurveGeometry, BoundingBoxGeometry, *_MOTION_CLASSES)
+_MOTION_CLASSES = (MotionTriangleGeometry, MotionCurveGeometry, MotionBoundingBoxGeometry, MotionSphereGeometry)
+_GEOMETRY_CLASSES = (TriangleGeometry, CurveGeometry, BoundingBoxGeometry, SphereGeometry, *_MOTION_CLASSES)
 
 
 def geometry_info(g: Any) -> GeometryInfo:
@@ -228,8 +229,8 @@ def as_geometry_tuple(geometries: Any) -> tuple[TriangleGeometry, ...]:
         if not isinstance(geometry, _GEOMETRY_CLASSES):
             raise TypeError(
                 f"build_primitive_structure: geometries[{index}] is a {type(geometry).__name__}; "
-                "supported geometry types: TriangleGeometry, CurveGeometry, BoundingBoxGeometry and their Motion* "
-                "variants"
+                "supported geometry types: TriangleGeometry, CurveGeometry, BoundingBoxGeometry, SphereGeometry and "
+                "their Motion* variants"
             )
     primitive_data_layout(geometries)  # one layout for all primitive data (a named error otherwise)
     return geometries
@@ -239,13 +240,7 @@ def _leaf_primitives(geometries: tuple[TriangleGeometry, ...], capacity: int):
     """Concatenated triangles, ids and boxes of all geometries, padded to ``capacity`` (unsorted)."""
     curves = curve_leaves(geometries, capacity)  # None without curve geometries
     dtype = geometries_dtype(geometries)
-    triangles = jnp.concatenate(
-        [
-            g.triangle_vertices() if TRIANGLE.holds(g) else jnp.zeros((g.primitive_count, 3, 3), dtype)
-            for g in geometries
-        ],
-        axis=0,
-    )
+    triangles = jnp.concatenate([_shared_rows(g, dtype) for g in geometries], axis=0)
     count = triangles.shape[0]
     geometry_id = jnp.concatenate([jnp.full((g.primitive_count,), i, jnp.int32) for i, g in enumerate(geometries)])
     primitive_id = jnp.concatenate([jnp.arange(g.primitive_count, dtype=jnp.int32) for g in geometries])
@@ -260,6 +255,11 @@ def _leaf_primitives(geometries: tuple[TriangleGeometry, ...], capacity: int):
     triangle_lower, triangle_upper = TRIANGLE.bounds(triangles)
     lower = jnp.where(enterable[:, None], triangle_lower, jnp.inf)
     upper = jnp.where(enterable[:, None], triangle_upper, -jnp.inf)
+    spheres = _sphere_slots(geometries, capacity)
+    if spheres is not None:  # spheres: the centre plus and minus the radius (empty for a bad sphere)
+        sphere_lower, sphere_upper = SPHERE.bounds(triangles)
+        lower = jnp.where(spheres[:, None], sphere_lower, lower)
+        upper = jnp.where(spheres[:, None], sphere_upper, upper)
     if curves is not None:  # curve segments: their Bezier hull grown by the radius
         lower = jnp.where(curves.is_curve[:, None], curves.lower, lower)
         upper = jnp.where(curves.is_curve[:, None], curves.upper, upper)
@@ -269,15 +269,40 @@ def _leaf_primitives(geometries: tuple[TriangleGeometry, ...], capacity: int):
         box_lower, box_upper = BOUNDING_BOX.bounds(boxes)
         lower = jnp.where(is_box[:, None], box_lower, lower)
         upper = jnp.where(is_box[:, None], box_upper, upper)
-    return triangles, geometry_id, primitive_id, lower, upper, valid, curves, boxes
+    return triangles, geometry_id, primitive_id, lower, upper, valid, curves, boxes, spheres
+
+
+def _shared_rows(g: Any, dtype) -> jax.Array:
+    """The ``(N, 3, 3)`` rows of ``leaf_triangle`` of one geometry: triangles' vertices, spheres' centre and
+    radius (:mod:`jaxrt._src.kinds.sphere`), zeros for the other kinds."""
+    if TRIANGLE.holds(g):
+        return g.triangle_vertices()
+    if SPHERE.holds(g):
+        return g.leaf_rows().astype(dtype)
+    return jnp.zeros((g.primitive_count, 3, 3), dtype)
+
+
+def _sphere_slots(geometries, capacity: int) -> jax.Array | None:
+    """``(C,)`` whether each unsorted slot holds a sphere (``None`` without sphere geometry)."""
+    if not any(SPHERE.holds(g) for g in geometries):
+        return None
+    flags = np.zeros(capacity, bool)
+    start = 0
+    for g in geometries:
+        flags[start : start + g.primitive_count] = SPHERE.holds(g)
+        start += g.primitive_count
+    return jnp.asarray(flags)
 
 
 def geometries_dtype(geometries) -> jnp.dtype:
     """The float type of a sequence of geometries (the first one's)."""
     first = geometries[0]
-    return {TRIANGLE: lambda: first.vertices, CURVE: lambda: first.control_points, BOUNDING_BOX: lambda: first.lower}[
-        registry.kind(first.kind)
-    ]().dtype
+    return {
+        TRIANGLE: lambda: first.vertices,
+        CURVE: lambda: first.control_points,
+        BOUNDING_BOX: lambda: first.lower,
+        SPHERE: lambda: first.centers,
+    }[registry.kind(first.kind)]().dtype
 
 
 def _leaf_boxes(geometries, capacity: int, dtype) -> jax.Array | None:
@@ -315,7 +340,7 @@ def _lbvh(codes: jax.Array, real: int) -> tuple[jax.Array, jax.Array, jax.Array]
     return children, node_range, jnp.concatenate([order, jnp.arange(real, capacity, dtype=jnp.int32)])
 
 
-def _code_bounds(triangles, curves, boxes) -> tuple[jax.Array, jax.Array]:
+def _code_bounds(triangles, curves, boxes, spheres=None) -> tuple[jax.Array, jax.Array]:
     """The boxes whose centroids give the Morton codes."""
     # Codes from the triangles' own boxes: a zero-area triangle's empty box has no centroid.
     bounds = lax.stop_gradient(triangles)
@@ -328,6 +353,10 @@ def _code_bounds(triangles, curves, boxes) -> tuple[jax.Array, jax.Array]:
         box_lower, box_upper = BOUNDING_BOX.bounds(lax.stop_gradient(boxes))
         code_lower = jnp.where(is_box[:, None], box_lower, code_lower)
         code_upper = jnp.where(is_box[:, None], box_upper, code_upper)
+    if spheres is not None:  # spheres: their centres (also for a bad sphere, whose box is empty)
+        centre = lax.stop_gradient(triangles[:, 0])
+        code_lower = jnp.where(spheres[:, None], centre, code_lower)
+        code_upper = jnp.where(spheres[:, None], centre, code_upper)
     return code_lower, code_upper
 
 
@@ -341,11 +370,11 @@ def _build(
 ) -> PrimitiveAccelerationStructure:
     count_keys = _keyframe_count(geometries, motion, "build_primitive_structure")
     frames = [_leaf_primitives(f, capacity) for f in _keyframes(geometries, count_keys)]
-    triangles, geometry_id, primitive_id, lower, upper, valid, curves, boxes = frames[0]
-    code_lower, code_upper = _code_bounds(triangles, curves, boxes)
+    triangles, geometry_id, primitive_id, lower, upper, valid, curves, boxes, spheres = frames[0]
+    code_lower, code_upper = _code_bounds(triangles, curves, boxes, spheres)
     if count_keys > 1:  # every box bounds its primitive at every keyframe (and so at every time)
         lower, upper = motion_bounds(jnp.stack([f[3] for f in frames]), jnp.stack([f[4] for f in frames]))
-        codes = [_code_bounds(f[0], f[6], f[7]) for f in frames]
+        codes = [_code_bounds(f[0], f[6], f[7], f[8]) for f in frames]
         code_lower, code_upper = motion_bounds(jnp.stack([c[0] for c in codes]), jnp.stack([c[1] for c in codes]))
     count = sum(g.primitive_count for g in geometries)
     real = max(count, 2)  # leaves the LBVH links
@@ -399,8 +428,10 @@ def _build(
 def _keyframe_boxes(frame) -> tuple[jax.Array, jax.Array]:
     """Leaf boxes of one keyframe in slot order, where a triangle without area keeps its (flat) box: a
     triangle flat at one keyframe may have area between keyframes, and the blend needs finite corners."""
-    triangles, _, _, lower, upper, valid, _, _ = frame
+    triangles, _, _, lower, upper, valid, _, _, spheres = frame
     flat = valid & jnp.any(lower > upper, axis=-1)
+    if spheres is not None:  # a bad sphere stays empty (its test rejects it at every time)
+        flat = flat & ~spheres
     triangle_lower, triangle_upper = TRIANGLE.bounds(triangles)
     lower = jnp.where(flat[:, None], triangle_lower, lower)
     upper = jnp.where(flat[:, None], triangle_upper, upper)
@@ -462,7 +493,7 @@ def build_structure(
 
 @full_precision
 def _refit(structure: PrimitiveAccelerationStructure, geometries: tuple[TriangleGeometry, ...], packer: Any):
-    triangles, _, _, lower, upper, _, curves, boxes = _leaf_primitives(geometries, structure.capacity)
+    triangles, _, _, lower, upper, _, curves, boxes, _ = _leaf_primitives(geometries, structure.capacity)
     # Leaf k holds unsorted slot order[k]; recover it from the stored ids (slot = offset + primitive).
     offsets = jnp.cumsum(jnp.array([0] + [g.primitive_count for g in geometries[:-1]], jnp.int32))
     padding = structure.leaf_geometry < 0

@@ -1,2 +1,2 @@
-"""Primitive kinds: one definition per kind (:mod:`.triangle`, :mod:`.bounding_box`, :mod:`.curve`), listed
-in :mod:`.registry`."""
+"""Primitive kinds: one definition per kind (:mod:`.triangle`, :mod:`.bounding_box`, :mod:`.curve`,
+:mod:`.sphere`), listed in :mod:`.registry`."""

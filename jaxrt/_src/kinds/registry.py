@@ -19,6 +19,7 @@ from typing import Any
 from jaxrt._src.kinds.bounding_box import BOUNDING_BOX
 from jaxrt._src.kinds.curve import CURVE
 from jaxrt._src.kinds.kind import Coverage, Kind
+from jaxrt._src.kinds.sphere import SPHERE
 from jaxrt._src.kinds.triangle import TRIANGLE
 
 __all__ = [
@@ -29,6 +30,7 @@ __all__ = [
     "KINDS",
     "RESULT_TAGS",
     "SCENE_FIELDS",
+    "SPHERE",
     "TRIANGLE",
     "Backend",
     "declines",
@@ -39,7 +41,7 @@ __all__ = [
 ]
 
 #: Every primitive kind, in the order of ``rt.IntersectionType``.
-KINDS: tuple[Kind, ...] = (TRIANGLE, BOUNDING_BOX, CURVE)
+KINDS: tuple[Kind, ...] = (TRIANGLE, BOUNDING_BOX, CURVE, SPHERE)
 
 _BY_NAME = {k.name: k for k in KINDS}
 
