@@ -1,0 +1,435 @@
+"""Built-in spheres (``rt.SphereGeometry``) against a float64 brute force: nearest and any hit, intervals,
+hits from inside, normals, primitive data, ``max_hits``, filters, instancing, keyframe motion, gradients
+against central differences, the hard cases of Haines et al. (spheres 1e4 from the origin, radii 1e-3 to 1e3)
+and bad input.
+
+The reference takes the float32 inputs exactly (as float64) and solves the quadratic in float64; a ray counts
+as ambiguous (and is not compared) where its nearest two sphere distances are within a relative 1e-4 of each
+other, or where it passes within a relative 1e-4 of a sphere's silhouette (grazing).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+import jaxrt as rt
+
+RAYS = 256
+CAPACITY = 64
+AMBIGUOUS = 1e-4
+
+
+# --- the float64 reference ---------------------------------------------------------------------------------------
+
+
+def roots64(origin, direction, centers, radii):
+    """``(near, far, grazing)`` ``(rays, spheres)`` in float64 (NaN where the ray misses) and the relative
+    closeness of each ray to each silhouette."""
+    o = np.asarray(origin, np.float64)[:, None, :]
+    d = np.asarray(direction, np.float64)[:, None, :]
+    c = np.asarray(centers, np.float64)[None]
+    r = np.asarray(radii, np.float64)[None]
+    f = o - c
+    a = np.sum(d * d, -1)
+    s = -np.sum(f * d, -1) / a
+    g = f + s[..., None] * d
+    miss2 = np.sum(g * g, -1)  # squared distance of the ray's line to the centre
+    disc = r * r - miss2
+    half = np.sqrt(np.maximum(disc, 0) / a)
+    near = np.where(disc >= 0, s - half, np.nan)
+    far = np.where(disc >= 0, s + half, np.nan)
+    grazing = np.abs(np.sqrt(miss2) - r) <= AMBIGUOUS * np.maximum(r, 1e-30)
+    return near, far, grazing
+
+
+def reference(origin, direction, t_min, t_max, centers, radii):
+    """Per ray: the nearest sphere, its distance, whether the ray enters there, and an ambiguity flag."""
+    near, far, grazing = roots64(origin, direction, centers, radii)
+    lo = np.asarray(t_min, np.float64)[:, None]
+    hi = np.asarray(t_max, np.float64)[:, None]
+    with np.errstate(invalid="ignore"):
+        near_ok = (near >= lo) & (near <= hi)
+        far_ok = (far >= lo) & (far <= hi)
+        t = np.where(near_ok, near, np.where(far_ok, far, np.inf))
+    order = np.argsort(t, axis=1)
+    rows = np.arange(t.shape[0])
+    best = order[:, 0]
+    distance = t[rows, best]
+    second = t[rows, order[:, 1]] if t.shape[1] > 1 else np.full_like(distance, np.inf)
+    with np.errstate(invalid="ignore"):
+        ambiguous = np.isfinite(distance) & (second - distance <= AMBIGUOUS * np.maximum(np.abs(distance), 1.0))
+        # a root close to an interval end, or a grazing sphere, could fall either way in float32
+        ends = np.concatenate([near, far], 1)
+        scale = AMBIGUOUS * np.maximum(np.abs(ends), 1)
+        edge = np.any((np.abs(ends - lo) <= scale) | (np.abs(ends - hi) <= scale), 1)
+    ambiguous |= edge | np.any(grazing, 1)
+    hit = np.isfinite(distance)
+    front = hit & near_ok[rows, best]
+    return hit, np.where(hit, best, -1), distance, front, ambiguous, t
+
+
+def scene(seed: int, count: int = 40, spread: float = 4.0, inside: bool = True):
+    """Random spheres and rays (some starting inside spheres, some with a finite interval)."""
+    rng = np.random.default_rng(seed)
+    centers = rng.uniform(-spread, spread, (count, 3)).astype(np.float32)
+    radii = rng.uniform(0.2, 1.2, count).astype(np.float32)
+    origin = rng.uniform(-2 * spread, 2 * spread, (RAYS, 3)).astype(np.float32)
+    if inside:
+        origin[:32] = centers[np.arange(32) % count] + rng.normal(size=(32, 3)).astype(np.float32) * 0.05
+    targets = centers[rng.integers(0, count, RAYS)] + rng.normal(size=(RAYS, 3)).astype(np.float32)
+    direction = (targets - origin).astype(np.float32)
+    direction[:8] = rng.normal(size=(8, 3))
+    t_min = np.zeros(RAYS, np.float32)
+    t_max = np.full(RAYS, np.inf, np.float32)
+    t_min[200:230] = rng.uniform(0.0, 0.8, 30)
+    t_max[230:] = rng.uniform(0.3, 1.0, RAYS - 230)
+    return centers, radii, origin, direction, t_min, t_max
+
+
+def trace(intersector, structure, origin, direction, t_min, t_max, time=None):
+    kw = {} if time is None else {"time": jnp.asarray(time, jnp.float32)}
+    ray = rt.Ray(jnp.asarray(origin), jnp.asarray(direction), jnp.asarray(t_min), jnp.asarray(t_max), **kw)
+    return jax.tree_util.tree_map(np.asarray, dict(intersector.intersect(ray, structure)))
+
+
+NEAREST = rt.Intersector(rt.tags.normal, rt.tags.sphere_data, rt.tags.primitive_data)
+
+
+def check_nearest(result, ref, origin, direction, centers, radii, rtol=1e-5):
+    hit, best, distance, front, ambiguous, _ = ref
+    clear = ~ambiguous
+    assert clear.sum() > RAYS // 2
+    sphere_type = int(rt.IntersectionType.SPHERE)
+    np.testing.assert_array_equal(result["type"][clear], np.where(hit, sphere_type, 0)[clear])
+    np.testing.assert_array_equal(result["primitive_id"][clear], best[clear])
+    ok = clear & hit
+    assert ok.sum() > 20
+    np.testing.assert_allclose(result["distance"][ok], distance[ok], rtol=rtol, atol=1e-6)
+    assert np.all(np.isinf(result["distance"][clear & ~hit]))
+    np.testing.assert_array_equal(result["sphere_front_facing"][clear], front[clear])
+    # the outward unit normal at the hit point
+    point = origin[ok] + distance[ok, None] * direction[ok].astype(np.float64)
+    outward = (point - centers[best[ok]]) / radii[best[ok], None]
+    np.testing.assert_allclose(result["normal"][ok], outward, atol=2e-3)
+    np.testing.assert_array_equal(result["primitive_data"][ok], best[ok] * 10)
+    assert not np.isnan(result["distance"]).any() and not np.isnan(result["normal"]).any()
+
+
+# --- nearest and any hit -----------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def random_scene():
+    centers, radii, origin, direction, t_min, t_max = scene(1)
+    geometry = rt.SphereGeometry(centers, radii, primitive_data=jnp.arange(len(radii)) * 10)
+    structure = rt.build_primitive_structure(geometry, capacity=CAPACITY)
+    ref = reference(origin, direction, t_min, t_max, centers, radii)
+    return structure, (centers, radii, origin, direction, t_min, t_max), ref
+
+
+def test_nearest_matches_float64(random_scene):
+    structure, (centers, radii, origin, direction, t_min, t_max), ref = random_scene
+    result = trace(NEAREST, structure, origin, direction, t_min, t_max)
+    check_nearest(result, ref, origin, direction, centers, radii)
+    # rays from inside report the exit hit, facing away
+    hit, _, _, front, ambiguous, _ = ref
+    assert np.sum(hit[:32] & ~front[:32] & ~ambiguous[:32]) >= 16
+    # the interval cuts hits: some rays with a finite t_max miss a sphere they would hit without it
+    _, _, unbounded, _, _, _ = reference(origin, direction, t_min, np.full(RAYS, np.inf), centers, radii)
+    assert np.any(~hit[230:] & np.isfinite(unbounded[230:]))
+
+
+def test_any_hit_accepts_a_real_hit(random_scene):
+    structure, (centers, radii, origin, direction, t_min, t_max), ref = random_scene
+    hit, _, _, _, ambiguous, t = ref
+    result = trace(rt.Intersector(accept_any_intersection=True), structure, origin, direction, t_min, t_max)
+    clear = ~ambiguous
+    np.testing.assert_array_equal(result["type"][clear] != 0, hit[clear])
+    ok = clear & hit
+    chosen = t[ok, result["primitive_id"][ok]]
+    np.testing.assert_allclose(result["distance"][ok], chosen, rtol=1e-5)
+
+
+def test_max_hits_and_counting(random_scene):
+    structure, (centers, radii, origin, direction, t_min, t_max), ref = random_scene
+    _, _, _, _, ambiguous, t = ref
+    k = 3
+    result = trace(rt.Intersector(max_hits=k), structure, origin, direction, t_min, t_max)
+    clear = ~ambiguous
+    want = np.sort(t, axis=1)
+    count = np.sum(np.isfinite(t), 1)
+    np.testing.assert_array_equal(result["hit_count"][clear], np.minimum(count, k)[clear])
+    np.testing.assert_array_equal(result["hit_overflow"][clear], (count > k)[clear])
+    finite = np.isfinite(want[:, :k]) & clear[:, None]
+    np.testing.assert_allclose(result["distance"][finite], want[:, :k][finite], rtol=1e-5)
+    ray = rt.Ray(jnp.asarray(origin), jnp.asarray(direction), jnp.asarray(t_min), jnp.asarray(t_max))
+    counted = np.asarray(rt.count_intersections(ray, structure))
+    np.testing.assert_array_equal(counted[clear], count[clear])
+    assert count.max() > k
+
+
+def test_filter_on_non_opaque_spheres(random_scene):
+    _, (centers, radii, origin, direction, t_min, t_max), _ = random_scene
+    ids = jnp.arange(len(radii))
+    geometry = rt.SphereGeometry(centers, radii, primitive_data=ids, opaque=False)
+    structure = rt.build_primitive_structure(geometry, capacity=CAPACITY)
+    even = rt.Intersector(filter=lambda c: c.primitive_data % 2 == 0)
+    result = trace(even, structure, origin, direction, t_min, t_max)
+    keep = np.arange(len(radii)) % 2 == 0
+    hit, best, distance, _, ambiguous, _ = reference(origin, direction, t_min, t_max, centers[keep], radii[keep])
+    clear = ~ambiguous
+    np.testing.assert_array_equal(result["primitive_id"][clear], np.where(hit, np.flatnonzero(keep)[best], -1)[clear])
+    np.testing.assert_allclose(result["distance"][clear & hit], distance[clear & hit], rtol=1e-5)
+
+
+def test_mixed_with_triangles():
+    """Spheres and triangles in one structure: each leaf takes its own test."""
+    centers, radii, origin, direction, t_min, t_max = scene(2, count=8, inside=False)
+    quad = np.array([[-1e3, -1e3], [1e3, -1e3], [1e3, 1e3], [-1e3, -1e3], [1e3, 1e3], [-1e3, 1e3]])
+    ground = np.concatenate([quad, np.full((6, 1), -1.5)], 1).astype(np.float32)
+    structure = rt.build_primitive_structure([rt.SphereGeometry(centers, radii), rt.TriangleGeometry(ground)])
+    result = trace(rt.Intersector(rt.tags.normal), structure, origin, direction, t_min, t_max)
+    hit, best, distance, _, ambiguous, _ = reference(origin, direction, t_min, t_max, centers, radii)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        plane = (-1.5 - origin[:, 2].astype(np.float64)) / direction[:, 2]
+        at = origin + plane[:, None] * direction
+        plane_ok = (plane >= t_min) & (plane <= t_max) & np.all(np.abs(at[:, :2]) < 900, 1)
+    plane = np.where(plane_ok, plane, np.inf)
+    with np.errstate(invalid="ignore"):
+        clear = ~ambiguous & (np.abs(plane - distance) > 1e-3)
+    want_type = np.where(plane < distance, 1, np.where(hit, 4, 0))
+    np.testing.assert_array_equal(result["type"][clear], want_type[clear])
+    sphere_hits = clear & (want_type == 4)
+    assert sphere_hits.sum() > 10 and (clear & (want_type == 1)).sum() > 10
+    np.testing.assert_array_equal(result["geometry_id"][sphere_hits], 0)
+
+
+@given(st.integers(0, 2**31 - 1), st.sampled_from([0.5, 4.0, 300.0]))
+def test_random_scenes_match_float64(seed, spread):
+    centers, radii, origin, direction, t_min, t_max = scene(seed, spread=spread)
+    radii = (radii * spread / 4).astype(np.float32)
+    geometry = rt.SphereGeometry(centers, radii, primitive_data=jnp.arange(len(radii)) * 10)
+    structure = rt.build_primitive_structure(geometry, capacity=CAPACITY)
+    ref = reference(origin, direction, t_min, t_max, centers, radii)
+    check_nearest(trace(NEAREST, structure, origin, direction, t_min, t_max), ref, origin, direction, centers, radii)
+
+
+# --- precision ----------------------------------------------------------------------------------------------------
+
+
+def test_far_small_and_large_spheres():
+    """Spheres about 1e4 from the origin with radii 1e-3 to 1e3: rays from the origin and from near each
+    sphere, aimed at its centre or across it. Non-grazing hits have a relative distance error of at most 1e-6
+    against float64 on the same float32 inputs, and no ray whose line passes within half a radius of the
+    centre misses."""
+    rng = np.random.default_rng(7)
+    n = RAYS // 4
+    direction_of = rng.normal(size=(n, 3))
+    direction_of /= np.linalg.norm(direction_of, axis=1, keepdims=True)
+    centers = (direction_of * 1e4 * rng.uniform(0.8, 1.2, (n, 1))).astype(np.float32)
+    radii = (10.0 ** rng.uniform(-3, 3, n)).astype(np.float32)
+    origins, directions, which = [], [], []
+    for k in range(4):  # from the origin, from 3 to 100 radii away, aimed at the centre or off it
+        if k == 0:
+            o = np.zeros((n, 3))
+        else:
+            away = rng.normal(size=(n, 3))
+            away /= np.linalg.norm(away, axis=1, keepdims=True)
+            o = centers + away * (radii[:, None] * rng.uniform(3, 100, (n, 1)))
+        o = o.astype(np.float32)
+        offset = rng.normal(size=(n, 3)) * radii[:, None] * (0.0 if k < 2 else 0.4)
+        origins.append(o)
+        directions.append((centers + offset - o).astype(np.float32))
+        which.append(np.arange(n))
+    origin, direction, which = np.concatenate(origins), np.concatenate(directions), np.concatenate(which)
+    for part in range(2):  # one structure of the far spheres; each ray is compared with its own sphere
+        rows = slice(part * (RAYS // 2), (part + 1) * (RAYS // 2))
+        structure = rt.build_primitive_structure(rt.SphereGeometry(centers, radii), capacity=CAPACITY)
+        result = trace(rt.Intersector(), structure, origin[rows], direction[rows], 0.0, np.inf)
+        o, d, w = origin[rows], direction[rows], which[rows]
+        near, far, _ = roots64(o, d, centers[w][:, None][:, 0], radii[w])
+        near, far = np.diagonal(near), np.diagonal(far)
+        f = o.astype(np.float64) - centers[w]
+        dd = d.astype(np.float64)
+        s = -np.sum(f * dd, 1) / np.sum(dd * dd, 1)
+        miss = np.linalg.norm(f + s[:, None] * dd, axis=1)
+        aimed = miss <= 0.5 * radii[w]
+        assert aimed.sum() >= (RAYS // 2 - 8 if part == 0 else 16)  # the first half aims every ray exactly
+        got = result["distance"]
+        mine = result["primitive_id"] == w
+        assert np.all(np.isfinite(got[aimed])), f"missed rays aimed at centres: {np.flatnonzero(~np.isfinite(got) & aimed)}"
+        clean = aimed & mine & (miss <= 0.9 * radii[w])
+        want = np.where(near >= 0, near, far)
+        error = np.abs(got[clean] - want[clean]) / want[clean]
+        assert error.max() <= 1e-6, f"relative distance error {error.max():.3g}"
+
+
+# --- instancing, motion ------------------------------------------------------------------------------------------
+
+
+def test_instanced_spheres():
+    """Spheres below a rotated, uniformly scaled, translated instance match world-space spheres."""
+    centers, radii, origin, direction, t_min, t_max = scene(3, count=16, inside=False)
+    angle = 0.7
+    rotation = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+    scale, shift = 1.5, np.array([0.5, -1.0, 2.0])
+    transform = np.concatenate([rotation * scale, shift[:, None]], 1).astype(np.float32)
+    inner = rt.build_primitive_structure(rt.SphereGeometry(centers, radii), capacity=CAPACITY)
+    scene_structure = rt.build_instance_structure([inner], rt.Instances([0], transform[None]))
+    intersector = rt.Intersector(rt.tags.instancing, rt.tags.normal, rt.tags.sphere_data)
+    result = trace(intersector, scene_structure, origin, direction, t_min, t_max)
+    world = (centers.astype(np.float64) @ rotation.T * scale + shift).astype(np.float32)
+    world_radii = (radii * scale).astype(np.float32)
+    hit, best, distance, front, ambiguous, _ = reference(origin, direction, t_min, t_max, world, world_radii)
+    clear = ~ambiguous
+    np.testing.assert_array_equal(result["primitive_id"][clear], best[clear])
+    ok = clear & hit
+    assert ok.sum() > 20
+    np.testing.assert_allclose(result["distance"][ok], distance[ok], rtol=1e-4)
+    point = origin[ok] + distance[ok, None] * direction[ok].astype(np.float64)
+    outward = (point - world[best[ok]]) / world_radii[best[ok], None]
+    np.testing.assert_allclose(result["normal"][ok], outward, atol=2e-3)
+    np.testing.assert_array_equal(result["instance_id"][ok, 0], 0)
+
+
+def test_keyframe_motion_of_centres_and_radii():
+    centers, radii, origin, direction, t_min, t_max = scene(4, count=16, inside=False)
+    rng = np.random.default_rng(4)
+    moved = (centers + rng.normal(size=centers.shape)).astype(np.float32)
+    radii1 = (radii * rng.uniform(0.3, 1.5, radii.shape)).astype(np.float32)
+    geometry = rt.MotionSphereGeometry([centers, moved], [radii, radii1])
+    structure = rt.build_primitive_structure(geometry, motion=rt.MotionSpec(0.0, 1.0), capacity=CAPACITY)
+    time = rng.uniform(0, 1, RAYS).astype(np.float32)
+    intersector = rt.Intersector(rt.tags.primitive_motion)
+    result = trace(intersector, structure, origin, direction, t_min, t_max, time)
+    checked = 0
+    for w in (0.0, 0.25, 0.5, 0.75, 1.0):  # rays grouped by time: the reference blends per group
+        rows = np.abs(time - w) < 0.125
+        if not rows.any():
+            continue
+        w_rows = time[rows].astype(np.float64)[:, None]
+        blended_c = centers[None] * (1 - w_rows[..., None]) + moved[None] * w_rows[..., None]  # (r, n, 3)
+        blended_r = radii[None] * (1 - w_rows) + radii1[None] * w_rows
+        for i, r in enumerate(np.flatnonzero(rows)):
+            one = reference(
+                origin[r : r + 1], direction[r : r + 1], t_min[r : r + 1], t_max[r : r + 1], blended_c[i], blended_r[i]
+            )
+            hit, best, distance, _, ambiguous, _ = one
+            if ambiguous[0]:
+                continue
+            checked += 1
+            assert result["primitive_id"][r] == best[0]
+            if hit[0]:
+                np.testing.assert_allclose(result["distance"][r], distance[0], rtol=1e-4)
+    assert checked > RAYS // 2
+
+
+# --- gradients ---------------------------------------------------------------------------------------------------
+
+
+def test_gradients_match_central_differences():
+    """d(distance), d(normal) with respect to centres, radii, ray origins and directions, in float64."""
+    with jax.enable_x64(True):
+        centers, radii, origin, direction, t_min, t_max = scene(5, count=12, inside=True)
+        params = {
+            "centers": jnp.asarray(centers, jnp.float64),
+            "radii": jnp.asarray(radii, jnp.float64),
+            "origin": jnp.asarray(origin, jnp.float64),
+            "direction": jnp.asarray(direction, jnp.float64),
+        }
+        intersector = rt.Intersector(rt.tags.normal)
+
+        def run(p):
+            structure = rt.build_primitive_structure(rt.SphereGeometry(p["centers"], p["radii"]), capacity=16)
+            ray = rt.Ray(p["origin"], p["direction"], jnp.zeros(RAYS), jnp.full(RAYS, jnp.inf))
+            result = intersector.intersect(ray, structure)
+            return result.distance, result.normal, result.primitive_id
+
+        weights = jnp.asarray(np.random.default_rng(5).normal(size=(RAYS, 3)))
+
+        def loss(p, mask):
+            distance, normal, _ = run(p)
+            distance = jnp.where(mask, distance, 0.0)
+            normal = jnp.where(mask[:, None], normal, 0.0)
+            return jnp.sum(distance) + jnp.sum(normal * weights)
+
+        run_jit, loss_jit = jax.jit(run), jax.jit(loss)
+        _, _, base_id = run_jit(params)
+        base_id = np.asarray(base_id)
+        rng = np.random.default_rng(6)
+        tangent = {k: jnp.asarray(rng.normal(size=v.shape)) for k, v in params.items()}
+        step = 1e-5
+        ids, losses = [], []
+        mask = jnp.asarray(base_id >= 0)
+        for sign in (1, -1):
+            moved = {k: v + sign * step * tangent[k] for k, v in params.items()}
+            ids.append(np.asarray(run_jit(moved)[2]))
+        stable = (ids[0] == base_id) & (ids[1] == base_id) & (base_id >= 0)
+        assert stable.sum() > RAYS // 4
+        mask = jnp.asarray(stable)
+        for sign in (1, -1):
+            moved = {k: v + sign * step * tangent[k] for k, v in params.items()}
+            losses.append(float(loss_jit(moved, mask)))
+        numeric = (losses[0] - losses[1]) / (2 * step)
+        grad = jax.jit(jax.grad(loss))(params, mask)
+        analytic = sum(float(jnp.sum(grad[k] * tangent[k])) for k in params)
+        assert all(np.all(np.isfinite(np.asarray(g))) for g in grad.values())
+        assert abs(analytic - numeric) <= 1e-5 * max(1.0, abs(numeric)), (analytic, numeric)
+        for key in params:  # each parameter's gradient is non-zero
+            assert float(jnp.max(jnp.abs(grad[key]))) > 0, key
+
+
+# --- bad input -----------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("centers", "radii", "match"),
+    [
+        ([[0.0, np.nan, 0.0]], 1.0, r"SphereGeometry: centers has a non-finite value nan at index \(0, 1\)"),
+        ([[0.0, 0.0, np.inf]], 1.0, r"centers has a non-finite value inf"),
+        ([[0.0, 0.0, 0.0]], -1.0, r"SphereGeometry: radii\[0\] = -1.0 must be finite and >= 0"),
+        ([[0.0, 0.0, 0.0], [1, 1, 1]], [1.0, np.nan], r"radii\[1\] = nan must be finite and >= 0"),
+        ([[0.0, 0.0]], 1.0, r"SphereGeometry: centers must have shape \(N, 3\), got \(1, 2\)"),
+        ([[0.0, 0.0, 0.0]], [1.0, 2.0], r"radii must be a scalar or have shape \(1,\)"),
+        (np.zeros((0, 3), np.float32), 1.0, r"SphereGeometry: centers is empty"),
+        (np.zeros((1, 3), np.int32), 1.0, r"SphereGeometry: centers must be float32 or float64, got dtype int32"),
+        ([[0.0, 0.0, 0.0]], np.ones(1, np.int64), r"SphereGeometry: radii must be float32 or float64"),
+    ],
+)
+def test_bad_input_is_a_named_value_error(centers, radii, match):
+    with pytest.raises(ValueError, match=match):
+        rt.SphereGeometry(np.asarray(centers) if isinstance(centers, np.ndarray) else centers, radii)
+
+
+def test_bad_motion_input():
+    with pytest.raises(ValueError, match=r"MotionSphereGeometry: keyframe 1: radii\[0\] = -2.0"):
+        rt.MotionSphereGeometry([[[0.0, 0, 0]], [[1.0, 0, 0]]], [[1.0], [-2.0]])
+    with pytest.raises(ValueError, match=r"MotionSphereGeometry: centers needs at least 2 keyframes"):
+        rt.MotionSphereGeometry([[0.0, 0, 0]], 1.0)
+
+
+def test_bad_spheres_inside_jit():
+    """With checks a traced bad sphere is a BuildCheckError; without, it is never hit."""
+    centers = jnp.array([[0.0, 0, 0], [0, 0, 3], [0, 0, 6], [0, 0, 9]], jnp.float32)
+    radii = jnp.array([1.0, -1.0, jnp.nan, jnp.inf], jnp.float32)
+
+    def build(c, r, checks):
+        return rt.build_primitive_structure(rt.SphereGeometry(c, r), checks=checks, capacity=4)
+
+    with pytest.raises(rt.BuildCheckError, match=r"radii\[1\] = -1\. is negative or not finite"):
+        with rt.build_check_errors():
+            jax.block_until_ready(jax.jit(lambda c, r: build(c, r, True))(centers, radii))
+    bad_centre = centers.at[0, 1].set(jnp.nan)
+    with pytest.raises(rt.BuildCheckError, match=r"centers\[0\] = \[ 0\., nan, 0\.\] is not finite"):
+        with rt.build_check_errors():
+            jax.block_until_ready(jax.jit(lambda c, r: build(c, r, True))(bad_centre, jnp.abs(radii)))
+    structure = jax.jit(lambda c, r: build(c, r, False))(bad_centre, radii)
+    origin = np.array([[0.0, 0, -5], [0, 0, 3], [0, 0, 6], [0, 0, 12]], np.float32)
+    direction = np.array([[0.0, 0, 1], [1, 0, 0], [1, 0, 0], [0, 0, -1]], np.float32)
+    result = rt.Intersector().intersect(rt.Ray(origin, direction), structure)
+    assert np.all(np.asarray(result.type) == 0), np.asarray(result.primitive_id)
