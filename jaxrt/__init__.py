@@ -37,8 +37,8 @@ from jaxrt._src.query import IntersectionQuery, intersection_query
 from jaxrt._src.ray import Ray
 from jaxrt._src.result import IntersectionResult, IntersectionType
 from jaxrt._src.sharding import device_mesh, intersect_sharded, replicate
-from jaxrt._src.spheres import MotionSphereGeometry, SphereGeometry
 from jaxrt._src.sizes import StructureSizes, sah_cost, structure_sizes
+from jaxrt._src.spheres import MotionSphereGeometry, SphereGeometry
 from jaxrt._src.structures import PrimitiveAccelerationStructure
 from jaxrt._src.topology import boundary_edge_count, is_closed
 from jaxrt._src.visibility import DirectionalLight, PinholeCamera, PointLight, SilhouetteMesh
