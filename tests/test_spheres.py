@@ -262,7 +262,9 @@ def test_far_small_and_large_spheres():
         assert aimed.sum() >= (RAYS // 2 - 8 if part == 0 else 16)  # the first half aims every ray exactly
         got = result["distance"]
         mine = result["primitive_id"] == w
-        assert np.all(np.isfinite(got[aimed])), f"missed rays aimed at centres: {np.flatnonzero(~np.isfinite(got) & aimed)}"
+        assert np.all(np.isfinite(got[aimed])), (
+            f"missed rays aimed at centres: {np.flatnonzero(~np.isfinite(got) & aimed)}"
+        )
         clean = aimed & mine & (miss <= 0.9 * radii[w])
         want = np.where(near >= 0, near, far)
         error = np.abs(got[clean] - want[clean]) / want[clean]
