@@ -16,8 +16,10 @@ import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
+from test_gpu_instanced import INTERPRETED, ON_GPU, kernel_launches_here, run_kernel_tests_in_interpreter
 
 import jaxrt as rt
+from jaxrt._src.traversal import gpu
 
 RAYS = 256
 CAPACITY = 64
@@ -222,7 +224,8 @@ def test_random_scenes_match_float64(seed, spread):
 # --- precision ----------------------------------------------------------------------------------------------------
 
 
-def test_far_small_and_large_spheres():
+@pytest.mark.parametrize("backend", ["portable", "cpu"])
+def test_far_small_and_large_spheres(backend):
     """Spheres about 1e4 from the origin with radii 1e-3 to 1e3: rays from the origin and from near each
     sphere, aimed at its centre or across it. Non-grazing hits have a relative distance error of at most 1e-6
     against float64 on the same float32 inputs, and no ray whose line passes within half a radius of the
@@ -250,7 +253,7 @@ def test_far_small_and_large_spheres():
     for part in range(2):  # one structure of the far spheres; each ray is compared with its own sphere
         rows = slice(part * (RAYS // 2), (part + 1) * (RAYS // 2))
         structure = rt.build_primitive_structure(rt.SphereGeometry(centers, radii), capacity=CAPACITY)
-        result = trace(rt.Intersector(), structure, origin[rows], direction[rows], 0.0, np.inf)
+        result = trace(rt.Intersector(backend=backend), structure, origin[rows], direction[rows], 0.0, np.inf)
         o, d, w = origin[rows], direction[rows], which[rows]
         near, far, _ = roots64(o, d, centers[w][:, None][:, 0], radii[w])
         near, far = np.diagonal(near), np.diagonal(far)
@@ -435,3 +438,87 @@ def test_bad_spheres_inside_jit():
     direction = np.array([[0.0, 0, 1], [1, 0, 0], [1, 0, 0], [0, 0, -1]], np.float32)
     result = rt.Intersector().intersect(rt.Ray(origin, direction), structure)
     assert np.all(np.asarray(result.type) == 0), np.asarray(result.primitive_id)
+
+
+# --- every backend against the portable path --------------------------------------------------------------------
+
+BACKEND_CASES = {
+    "nearest": dict(),
+    "any": dict(accept_any_intersection=True),
+    "max_hits": dict(max_hits=3),
+}
+
+
+def _compare(got, want, ambiguous, fields=("type", "primitive_id", "geometry_id")):
+    clear = ~ambiguous
+    for name in fields:
+        np.testing.assert_array_equal(got[name][clear], want[name][clear], err_msg=name)
+    ok = clear & np.isfinite(want["distance"].reshape(len(clear), -1)[:, 0])
+    np.testing.assert_allclose(got["distance"][ok], want["distance"][ok], rtol=1e-6, atol=1e-6)
+    np.testing.assert_array_equal(got["sphere_front_facing"][clear], want["sphere_front_facing"][clear])
+    np.testing.assert_allclose(got["normal"][ok], want["normal"][ok], atol=1e-5)
+
+
+@pytest.mark.parametrize("case", sorted(BACKEND_CASES))
+def test_cpu_traversal_matches_portable(random_scene, case):
+    structure, (centers, radii, origin, direction, t_min, t_max), ref = random_scene
+    tags = (rt.tags.normal, rt.tags.sphere_data)
+    options = BACKEND_CASES[case]
+    got = trace(rt.Intersector(*tags, backend="cpu", **options), structure, origin, direction, t_min, t_max)
+    want = trace(rt.Intersector(*tags, backend="portable", **options), structure, origin, direction, t_min, t_max)
+    _compare(got, want, ref[4] if case != "any" else np.zeros(RAYS, bool))
+
+
+def test_cpu_traversal_instanced_matches_portable(random_scene):
+    structure, (centers, radii, origin, direction, t_min, t_max), ref = random_scene
+    transform = np.array([[0.0, -1.2, 0, 0.5], [1.2, 0, 0, -1], [0, 0, 1.2, 2]], np.float32)
+    scene_structure = rt.build_instance_structure([structure], rt.Instances([0], transform[None]))
+    tags = (rt.tags.instancing, rt.tags.normal, rt.tags.sphere_data)
+    got = trace(rt.Intersector(*tags, backend="cpu"), scene_structure, origin, direction, t_min, t_max)
+    want = trace(rt.Intersector(*tags, backend="portable"), scene_structure, origin, direction, t_min, t_max)
+    assert np.sum(want["type"] == 4) > 50
+    _compare(got, want, np.zeros(RAYS, bool))
+
+
+kernel_here = pytest.fixture(kernel_launches_here, name="kernel_here")
+kernel_test = pytest.mark.skipif(not (INTERPRETED or ON_GPU), reason="runs in the interpreter process or on a GPU")
+
+
+def test_kernel_in_interpreter():
+    """Runs this module's GPU kernel tests in Triton's interpreter, in a fresh process."""
+    run_kernel_tests_in_interpreter(__file__, "gpu_kernel")
+
+
+@kernel_test
+@pytest.mark.parametrize("case", ["nearest", "any", "triangles"])
+def test_gpu_kernel_matches_portable(case, kernel_here, monkeypatch):
+    """The Triton kernel (the interpreter on a CPU) on a tiny scene: spheres alone, any hit, and spheres with
+    triangles in one structure, under an instance for the last."""
+    if not ON_GPU:
+        monkeypatch.setattr(gpu, "unavailable_reason", lambda intersector: None)
+    centers, radii, origin, direction, t_min, t_max = scene(9, count=12)
+    n = 64
+    origin, direction, t_min, t_max = origin[:n], direction[:n], t_min[:n], t_max[:n]
+    geometry = rt.SphereGeometry(centers, radii)
+    tags = (rt.tags.normal, rt.tags.sphere_data)
+    options = dict(accept_any_intersection=True) if case == "any" else {}
+    structure = rt.build_primitive_structure(geometry)
+    if case == "triangles":
+        ground = np.array([[-9, -9, -1.5], [9, -9, -1.5], [0, 9, -1.5]], np.float32)
+        inner = rt.build_primitive_structure([geometry, rt.TriangleGeometry(ground)])
+        structure = rt.build_instance_structure([inner], rt.Instances([0], np.eye(3, 4, dtype=np.float32)[None]))
+        tags = (*tags, rt.tags.instancing)
+    ray = rt.Ray(origin, direction, t_min, t_max)
+    got = jax.tree_util.tree_map(
+        np.asarray, dict(rt.Intersector(*tags, backend="gpu", **options).intersect(ray, structure))
+    )
+    want = jax.tree_util.tree_map(
+        np.asarray, dict(rt.Intersector(*tags, backend="portable", **options).intersect(ray, structure))
+    )
+    assert np.sum(want["type"] == 4) > 10
+    if case == "any":  # any hit: a real hit of the chosen sphere
+        np.testing.assert_array_equal(got["type"] != 0, want["type"] != 0)
+        return
+    np.testing.assert_array_equal(got["primitive_id"], want["primitive_id"])
+    np.testing.assert_array_equal(got["type"], want["type"])
+    np.testing.assert_allclose(got["distance"], want["distance"], rtol=1e-6)

@@ -61,6 +61,7 @@ _shapes = formulas.instance("analytic", "numba")
 _sphere = _shapes.sphere
 _disk = _shapes.disk
 _capped_cylinder = _shapes.capped_cylinder
+_ray_sphere = formulas.instance("sphere", "numba").ray_sphere
 
 __all__ = ["trace_flat", "trace_rays"]
 
@@ -265,9 +266,11 @@ def _row(m0, m1, m2, x0, x1, x2):
 @numba.njit(cache=True)
 def _analytic(row, ox, oy, oz, dx, dy, dz, t_min, t_max, one, inf):
     """``(accepted, distance)`` of an analytic leaf's row (:func:`jaxrt._src.traversal.packed.pack_analytic`:
-    ``p``, code, ``q``, radius) for the ray of its level."""
+    ``p``, code, ``q``, radius) for the ray of its level; code 5: a built-in sphere."""
     code = row[3]
-    if code == 1:
+    if code == 5:
+        ok, t, _ = _ray_sphere(row[0], row[1], row[2], row[7], ox, oy, oz, dx, dy, dz, t_min, t_max)
+    elif code == 1:
         ok, t = _sphere(row[0], row[1], row[2], row[7], ox, oy, oz, dx, dy, dz, t_min, t_max)
     elif code == 2:
         ok, t = _disk(row[0], row[1], row[2], row[4], row[5], row[6], row[7], ox, oy, oz, dx, dy, dz, t_min, t_max)  # fmt: skip

@@ -50,7 +50,8 @@ from jax import lax
 
 from jaxrt._src import numerics
 from jaxrt._src.kinds import registry
-from jaxrt._src.kinds.registry import BOUNDING_BOX, TRIANGLE
+from jaxrt._src.kinds import sphere as sphere_kind
+from jaxrt._src.kinds.registry import BOUNDING_BOX, SPHERE, TRIANGLE
 from jaxrt._src.motion import KeyframePosition, spec_position
 from jaxrt._src.primitives import analytic, box, curve
 from jaxrt._src.traversal import kernel_cache, packed
@@ -167,7 +168,7 @@ class _Config:
     prepacked: bool = False  # the node and triangle rows come with the arguments (packed at build time)
     max_hits: int = 0  # keep this many nearest hits per ray (0: the nearest hit only)
     count: bool = False  # count every accepted hit (no hit list)
-    analytic: int = 0  # analytic leaves: bits 0-2 their shapes, bit 3 triangles too (0: triangles only)
+    analytic: int = 0  # analytic leaves: bits 0-2 and 5 their shapes, bit 3 triangles too (0: triangles only)
     curves: tuple = ()  # with curve leaves: CurveLeaves.options (pieces, ..., disk, sphere, flat)
     cursor: bool = False  # candidate waves: list only candidates past each ray's cursor, in (distance, leaf) order
 
@@ -594,6 +595,8 @@ def leaf_motion(view: Any) -> LeafMotion | None:
 #: The shape code of a box leaf whose intersection function is user code (candidate waves): the kernel lists the
 #: box at its entry distance and JAX calls the function.
 CANDIDATE_BOX = 4
+#: The shape code of a built-in sphere leaf (``rt.SphereGeometry``), bit 5 of ``shapes``.
+BUILTIN_SPHERE = 5
 
 
 class AnalyticLeaves(NamedTuple):
@@ -601,7 +604,8 @@ class AnalyticLeaves(NamedTuple):
 
     rows: jax.Array  # (P, 12) float32: :func:`~jaxrt._src.traversal.packed.pack_analytic`, code 0 elsewhere
     shapes: int  # static: bit ``code - 1`` for each shape of the intersector's functions, bit 3 with triangles,
-    # bit 4 with boxes of user functions (code CANDIDATE_BOX, listed as candidates in waves)
+    # bit 4 with boxes of user functions (code CANDIDATE_BOX, listed as candidates in waves), bit 5 with built-in
+    # spheres (code BUILTIN_SPHERE: the centre, and the radius in column 7)
 
 
 def analytic_leaves(
@@ -623,7 +627,7 @@ def analytic_leaves(
       ValueError: a function that is not built-in (without ``candidates``), or primitive data without the
         fields a function reads.
     """
-    if BOUNDING_BOX.name not in view.kinds:
+    if BOUNDING_BOX.name not in view.kinds and SPHERE.name not in view.kinds:
         return None
     codes = np.zeros(len(view.geometry_info) + 1, np.int32)  # by geometry index; the last entry: padding
     shapes = 8 if TRIANGLE.name in view.kinds else 0
@@ -671,6 +675,13 @@ def analytic_leaves(
         first = jnp.where(mine[:, None], p, first)
         second = jnp.where(mine[:, None], q, second)
         radius = jnp.where(mine, r, radius)
+    if SPHERE.name in view.kinds:  # built-in spheres: centre and radius from the leaf row
+        is_sphere = view.leaf_flag(view.slot_table(view.slots_where(SPHERE.holds)), jnp.arange(count))
+        centre, r = sphere_kind.unpack(lax.stop_gradient(leaves.triangle).astype(dtype))
+        code = jnp.where(is_sphere, BUILTIN_SPHERE, code)
+        first = jnp.where(is_sphere[:, None], centre, first)
+        radius = jnp.where(is_sphere, r, radius)
+        shapes |= 1 << (BUILTIN_SPHERE - 1)
     return AnalyticLeaves(packed.pack_analytic(code, first, second, radius, dtype), shapes)
 
 

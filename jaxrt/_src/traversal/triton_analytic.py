@@ -10,7 +10,7 @@ function.
 
 Parameters come from the leaf's row (:func:`jaxrt._src.traversal.packed.pack_analytic`): ``p`` (the sphere's
 or disk's centre, the cylinder's ``p0``), ``q`` (the disk's normal, the cylinder's ``p1``), ``radius`` and the
-shape code (1 sphere, 2 disk, 3 capped cylinder).
+shape code (1 sphere, 2 disk, 3 capped cylinder, 5 built-in sphere: :mod:`jaxrt._src.formulas.sphere`).
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ _shapes = formulas.instance("analytic", "triton")
 _sphere = _shapes.sphere
 _disk = _shapes.disk
 _capped_cylinder = _shapes.capped_cylinder
+_ray_sphere = formulas.instance("sphere", "triton").ray_sphere
 
 
 @triton.jit
@@ -72,5 +73,14 @@ def analytic_hit(
                 hit, distance = _merge(hit, distance, lanes & h, t)
         else:
             h, t = _capped_cylinder(px, py, pz, qx, qy, qz, radius, ox, oy, oz, dx, dy, dz, t_min, t_max)
+            hit, distance = _merge(hit, distance, lanes & h, t)
+    if (SHAPES & 32) != 0:  # built-in spheres (rt.SphereGeometry), code 5
+        lanes = mask & (code == 5.0)
+        if (SHAPES & (SHAPES - 1)) != 0:
+            if _any(lanes):
+                h, t, _ = _ray_sphere(px, py, pz, radius, ox, oy, oz, dx, dy, dz, t_min, t_max)
+                hit, distance = _merge(hit, distance, lanes & h, t)
+        else:
+            h, t, _ = _ray_sphere(px, py, pz, radius, ox, oy, oz, dx, dy, dz, t_min, t_max)
             hit, distance = _merge(hit, distance, lanes & h, t)
     return hit, tl.where(hit, distance, float("inf"))
