@@ -37,8 +37,8 @@ from jaxrt._src.primitives.box import FAR_SCALE, PARALLEL_RECIPROCAL
 
 F32 = np.float32
 #: Formulas whose JAX instance evaluates ``dot3`` with ``jnp.dot`` (see the module docstring).
-DOT_FORMULAS = {("analytic", "sphere"), ("analytic", "disk"), ("analytic", "capped_cylinder")}
-POINT_FORMULAS = {("point_triangle", "closest_on_triangle")}
+DOT_FORMULAS = {("analytic", "sphere"), ("analytic", "disk"), ("analytic", "capped_cylinder"), ("sphere", "ray_sphere")}
+POINT_FORMULAS = {("point_triangle", "closest_on_triangle"), ("sphere", "closest_on_sphere")}
 #: Formulas with an XLA-contracted multiply-add (see the module docstring).
 CONTRACTED = {("triangle", "sheared_vertex"), ("triangle", "plane_distance")}
 
@@ -178,6 +178,14 @@ def _inputs() -> dict[tuple[str, str], tuple[np.ndarray, ...]]:
     cases[("analytic", "sphere")] = (*vec(p), radius.astype(F32), *ray)
     cases[("analytic", "disk")] = (*vec(p), *vec(normal), radius.astype(F32), *ray)
     cases[("analytic", "capped_cylinder")] = (*vec(p), *vec(q), radius.astype(F32), *ray)
+    # Built-in spheres: the same rays, and bad radii (negative, NaN, infinite: never a hit).
+    bad = radius.astype(F32)
+    bad[16:20], bad[20:24], bad[24:28] = -1.0, np.nan, np.inf
+    cases[("sphere", "ray_sphere")] = (*vec(p), bad, *ray)
+    point = p + rng.normal(size=(n, 3)) * 2
+    point[:8] = p[:8]  # at the centre
+    point[8:40] = p[8:40] + rng.normal(size=(32, 3)) * 0.1  # inside
+    cases[("sphere", "closest_on_sphere")] = (*vec(point), *vec(p), radius.astype(F32))
 
     # The closest point of a triangle: every Voronoi region, degenerate triangles, points far away.
     n = 512
@@ -324,6 +332,8 @@ def _names() -> list[tuple[str, str]]:
         ("analytic", "disk"),
         ("analytic", "capped_cylinder"),
         ("point_triangle", "closest_on_triangle"),
+        ("sphere", "ray_sphere"),
+        ("sphere", "closest_on_sphere"),
     ]
 
 
@@ -403,11 +413,16 @@ def test_contraction_is_the_only_difference(results, name):
 #: JAX against the unfused dot products, relative distance bounds of the shapes' hits: the sphere and the disk
 #: within 8 ulps; the capped cylinder's wall solves a quadratic whose coefficients carry ``|q - p|^4`` and
 #: cancel, which amplifies a dot product's rounding (124 ulps at most on these inputs): 256 ulps.
-SHAPE_RTOL = {"sphere": 8 * 2.0**-23, "disk": 8 * 2.0**-23, "capped_cylinder": 256 * 2.0**-23}
+SHAPE_RTOL = {
+    "sphere": 8 * 2.0**-23,
+    "ray_sphere": 8 * 2.0**-23,
+    "disk": 8 * 2.0**-23,
+    "capped_cylinder": 256 * 2.0**-23,
+}
 #: Rows of the degenerate cases (zero radii; collinear or repeated triangle vertices), whose values are rounding
 #: noise amplified (a root of a zero-radius shape, barycentrics over an area made of rounding): there Numba and
 #: Triton agree bit for bit and JAX is not compared.
-DEGENERATE_ROWS = {"analytic": 16, "point_triangle": 56}
+DEGENERATE_ROWS = {"analytic": 16, "point_triangle": 56, "sphere": 16}
 
 
 @pytest.mark.parametrize("name", sorted(DOT_FORMULAS | POINT_FORMULAS), ids=lambda n: f"{n[0]}.{n[1]}")
@@ -418,6 +433,12 @@ def test_jax_dot_products_agree_with_the_unfused_ones(results, name):
     where a near-tie of Voronoi regions changes them)."""
     c = results[name]
     skip = DEGENERATE_ROWS[name[0]]
+    if name == ("sphere", "closest_on_sphere"):  # the point and the signed distance within 8 ulps of the scale
+        scale = np.abs(np.stack(c["args"], 1)).max(1) + np.abs(c["args"][-1])
+        for k, (a, b) in enumerate(zip(c["jax"], c["numba"], strict=True)):
+            error = np.abs(a.astype(np.float64) - b)
+            assert (error <= 8 * np.spacing(scale.astype(F32))).all(), (k, error.max())
+        return
     if name in POINT_FORMULAS:
         corners = np.stack(c["args"], 1)[skip:].reshape(-1, 4, 3).astype(np.float64)
 
@@ -429,8 +450,8 @@ def test_jax_dot_products_agree_with_the_unfused_ones(results, name):
         bound = 8 * np.spacing(np.abs(corners).max(axis=(1, 2)).astype(F32))
         assert (error <= bound).all(), (error / bound).max()
         return
-    hit_j, t_j = (x[skip:] for x in c["jax"])
-    hit_n, t_n = (x[skip:] for x in c["numba"])
+    hit_j, t_j = (x[skip:] for x in c["jax"][:2])
+    hit_n, t_n = (x[skip:] for x in c["numba"][:2])
     _equal(hit_j, hit_n, f"{name}: hit")
     assert hit_n.sum() > 50, name
     np.testing.assert_allclose(t_j[hit_n], t_n[hit_n], rtol=SHAPE_RTOL[name[1]], err_msg=str(name))

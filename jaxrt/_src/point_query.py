@@ -9,8 +9,9 @@ below its box distance is dropped. The traversal picks the primitive under ``sto
 point is then computed again differentiably, so distances and points differentiate with respect to the
 points and the vertices (holding the chosen primitive fixed), as hits do in the intersector.
 
-Supported: primitive structures of triangle and bounding-box geometry (a box's distance is that of the solid
-box: 0 inside). Instance structures and curve geometry raise ``NotImplementedError``.
+Supported: primitive structures of the kinds with a closest-point formula (``Kind.closest_point``): triangles,
+bounding boxes (a box's distance is that of the solid box: 0 inside) and spheres (the surface). Instance
+structures and curve geometry raise ``NotImplementedError``.
 """
 
 from __future__ import annotations
@@ -100,20 +101,38 @@ class _State(NamedTuple):
     leaf: jax.Array  # its leaf, -1 while none
 
 
-def _leaf_distance(structure: PrimitiveAccelerationStructure, is_box_table, p: jax.Array, leaf: jax.Array):
-    """Squared distance from ``p`` to leaf ``leaf``'s primitive (triangle or box)."""
+def _leaf_distance(structure: PrimitiveAccelerationStructure, tables, p: jax.Array, leaf: jax.Array):
+    """Squared distance from ``p`` to leaf ``leaf``'s primitive (a triangle, or a kind of ``tables``)."""
     tri = structure.leaf_triangle[leaf]
     u, v = geo.closest_on_triangle(p, tri)
-    q = geo.triangle_point(tri, u, v)
-    if is_box_table is not None:
-        box = structure.leaf_box[leaf]
-        is_box = is_box_table[jnp.where(structure.leaf_geometry[leaf] < 0, -1, structure.leaf_geometry[leaf])]
-        q = jnp.where(is_box, geo.closest_on_box(p, box), q)
+    q = _other_kinds(structure, tables, p, leaf, geo.triangle_point(tri, u, v))
     d = p - q
     return jnp.sum(d * d)
 
 
-def _search(structure: PrimitiveAccelerationStructure, is_box_table, limit2: jax.Array):
+def _kind_tables(structure: PrimitiveAccelerationStructure) -> tuple:
+    """``(kind, table)`` for each kind present other than triangles: the kind's closest-point formula and a
+    bool table over geometry indices (a last row for padding)."""
+    tables = []
+    for kind in registry.present(structure.geometry_info):
+        if kind is not registry.TRIANGLE:
+            table = np.array([kind.holds(g) for g in structure.geometry_info] + [False])
+            tables.append((kind, jnp.asarray(table)))
+    return tuple(tables)
+
+
+def _other_kinds(structure: PrimitiveAccelerationStructure, tables, p: jax.Array, leaf: jax.Array, q: jax.Array):
+    """``q`` where leaf ``leaf`` (any batch shape) is a triangle, else its kind's closest point to ``p``, from
+    the kind's first leaf array (:attr:`~jaxrt._src.kinds.kind.Kind.closest_point`)."""
+    geometry = structure.leaf_geometry[leaf]
+    for kind, table in tables:
+        row = getattr(structure, kind.leaf_arrays[0].name)[leaf]
+        mine = table[jnp.where(geometry < 0, -1, geometry)]
+        q = jnp.where(mine[..., None], kind.closest_point(p, row), q)
+    return q
+
+
+def _search(structure: PrimitiveAccelerationStructure, tables, limit2: jax.Array):
     """``start``, ``step`` and ``done`` of the nearest-leaf walk for :func:`~jaxrt._src.point_traversal.walk_points`."""
     stack_size = structure.max_depth + 1
     children = structure.node_children
@@ -145,7 +164,7 @@ def _search(structure: PrimitiveAccelerationStructure, is_box_table, limit2: jax
         for j in range(2):
             k = -1 - kids[j]
             take = live & is_leaf[j] & (d_box[j] <= best)
-            d = _leaf_distance(structure, is_box_table, p, jnp.where(take, k, 0))
+            d = _leaf_distance(structure, tables, p, jnp.where(take, k, 0))
             better = take & ((d < best) | ((leaf < 0) & (d <= best)))
             best = jnp.where(better, d, best)
             leaf = jnp.where(better, k, leaf)
@@ -174,7 +193,7 @@ def _nearest_flat(points: jax.Array, structure: PrimitiveAccelerationStructure, 
     """The nearest leaf to each point ``(n, 3)`` within ``max_distance`` (-1 if none); not differentiated."""
     limit = jnp.asarray(max_distance, points.dtype)
     limit2 = jnp.where(jnp.isinf(limit), jnp.inf, limit * limit)
-    start, step, done = _search(structure, _box_table(structure), limit2)
+    start, step, done = _search(structure, _kind_tables(structure), limit2)
     return walk_points(points, start, step, done, lambda s: s.leaf, lanes=lanes)
 
 
@@ -189,7 +208,7 @@ def _closest_point_flat(points: jax.Array, structure: PrimitiveAccelerationStruc
 def _fields_flat(points: jax.Array, structure: PrimitiveAccelerationStructure, leaf: jax.Array) -> ClosestPointResult:
     """The result fields of the points' chosen leaves, differentiable in the points and the vertices."""
     dtype = points.dtype
-    table = _box_table(structure)
+    tables = _kind_tables(structure)
     found = leaf >= 0
     k = jnp.maximum(leaf, 0)
     dummy = jnp.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], dtype)
@@ -197,12 +216,12 @@ def _fields_flat(points: jax.Array, structure: PrimitiveAccelerationStructure, l
     p = jnp.where(found[:, None], points, 0)
     u, v = jax.vmap(geo.closest_on_triangle)(p, tri)
     q = jax.vmap(geo.triangle_point)(tri, u, v)
-    if table is not None:
+    if tables:
+        q = _other_kinds(structure, tables, p, k, q)
         geometry = structure.leaf_geometry[k]
-        is_box = found & table[jnp.where(geometry < 0, -1, geometry)]
-        q = jnp.where(is_box[:, None], geo.closest_on_box(p, structure.leaf_box[k]), q)
-        u = jnp.where(is_box, 0, u)
-        v = jnp.where(is_box, 0, v)
+        is_triangle = found & ~jnp.any(jnp.stack([t[jnp.where(geometry < 0, -1, geometry)] for _, t in tables]), 0)
+        u = jnp.where(is_triangle, u, 0)
+        v = jnp.where(is_triangle, v, 0)
     diff = p - q
     d2 = jnp.sum(diff * diff, axis=-1)
     positive = d2 > 0
@@ -251,9 +270,9 @@ def closest_point(
 
     Args:
       points: ``(..., 3)`` query points (finite).
-      structure: a :class:`~jaxrt.PrimitiveAccelerationStructure` of triangle and bounding-box geometry (a
-        box's distance is that of the solid box, 0 inside). Instance structures and curves raise
-        ``NotImplementedError``.
+      structure: a :class:`~jaxrt.PrimitiveAccelerationStructure` of triangle, bounding-box and sphere
+        geometry (a box's distance is that of the solid box, 0 inside; a sphere's that of its surface).
+        Instance structures and curves raise ``NotImplementedError``.
       max_distance: points farther than this from every primitive are misses.
 
     Returns:

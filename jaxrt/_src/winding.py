@@ -26,8 +26,11 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 
+from jaxrt._src.kinds import sphere as sphere_kind
+from jaxrt._src.kinds.registry import SPHERE
 from jaxrt._src.point_query import _box_table, check_points, check_structure, closest_point, run_flat
 from jaxrt._src.point_traversal import lanes_for_backend, walk_points
 from jaxrt._src.primitives import point_triangle as geo
@@ -80,6 +83,9 @@ class _Dipoles(NamedTuple):
 def _dipoles(structure: PrimitiveAccelerationStructure, beta: float) -> _Dipoles:
     tri = structure.leaf_triangle
     normals = 0.5 * jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # zero for non-triangle leaves
+    spheres = _sphere_leaves(structure)
+    if spheres is not None:  # a sphere's row is no triangle: solids count near the point only, as boxes
+        normals = jnp.where(spheres[:, None], 0.0, normals)
     area = jnp.sqrt(jnp.sum(normals * normals, axis=-1, keepdims=True))
     lower, upper = structure.node_lower, structure.node_upper
     finite = jnp.all(lower <= upper, axis=-1, keepdims=True)
@@ -105,10 +111,24 @@ def _dipoles(structure: PrimitiveAccelerationStructure, beta: float) -> _Dipoles
     return _Dipoles(sums[..., :3], center, beta * beta * jnp.sum(corner * corner, axis=-1))
 
 
+def _sphere_leaves(structure: PrimitiveAccelerationStructure) -> jax.Array | None:
+    """``(C,)`` whether each leaf is a sphere (``None`` without spheres)."""
+    if not any(SPHERE.holds(g) for g in structure.geometry_info):
+        return None
+    table = jnp.asarray(np.array([SPHERE.holds(g) for g in structure.geometry_info] + [False]))
+    return table[jnp.where(structure.leaf_geometry < 0, -1, structure.leaf_geometry)]
+
+
 def _leaf_winding(structure, box_table, p: jax.Array, leaf: jax.Array) -> jax.Array:
-    """Winding number of leaf ``leaf``'s primitive at ``p``: a solid angle, or 1 inside a box primitive."""
+    """Winding number of leaf ``leaf``'s primitive at ``p``: a solid angle, or 1 inside a box primitive or a
+    sphere."""
     w = geo.solid_angle(p, structure.leaf_triangle[leaf]) / _FOUR_PI
     geometry = structure.leaf_geometry[leaf]
+    spheres = _sphere_leaves(structure)
+    if spheres is not None:
+        centre, radius = sphere_kind.unpack(structure.leaf_triangle[leaf])
+        inside = jnp.sum((p - centre) ** 2) <= radius * radius
+        w = jnp.where(spheres[leaf], inside.astype(w.dtype), w)
     w = jnp.where(geometry < 0, 0, w)
     if box_table is not None:
         box = structure.leaf_box[leaf]

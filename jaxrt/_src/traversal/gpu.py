@@ -595,7 +595,7 @@ def leaf_motion(view: Any) -> LeafMotion | None:
 #: The shape code of a box leaf whose intersection function is user code (candidate waves): the kernel lists the
 #: box at its entry distance and JAX calls the function.
 CANDIDATE_BOX = 4
-#: The shape code of a built-in sphere leaf (``rt.SphereGeometry``), bit 5 of ``shapes``.
+#: The shape code of a built-in sphere leaf (``rt.SphereGeometry``); bit 5 of ``shapes`` says the scene has some.
 BUILTIN_SPHERE = 5
 
 
@@ -681,7 +681,7 @@ def analytic_leaves(
         code = jnp.where(is_sphere, BUILTIN_SPHERE, code)
         first = jnp.where(is_sphere[:, None], centre, first)
         radius = jnp.where(is_sphere, r, radius)
-        shapes |= 1 << (BUILTIN_SPHERE - 1)
+        shapes |= 1 << BUILTIN_SPHERE  # bit 5 (bit 4 is taken by candidate boxes)
     return AnalyticLeaves(packed.pack_analytic(code, first, second, radius, dtype), shapes)
 
 
