@@ -522,3 +522,50 @@ def test_gpu_kernel_matches_portable(case, kernel_here, monkeypatch):
     np.testing.assert_array_equal(got["primitive_id"], want["primitive_id"])
     np.testing.assert_array_equal(got["type"], want["type"])
     np.testing.assert_allclose(got["distance"], want["distance"], rtol=1e-6)
+
+
+# --- point queries -------------------------------------------------------------------------------------------------
+
+
+def test_closest_point_and_signed_distance():
+    """The nearest sphere surface to each point, and the signed distance to the set (negative inside a sphere),
+    against float64; differentiable in the points, centres and radii."""
+    rng = np.random.default_rng(11)
+    centers = rng.uniform(-4, 4, (30, 3)).astype(np.float32)
+    radii = rng.uniform(0.1, 0.8, 30).astype(np.float32)
+    points = np.concatenate([rng.uniform(-6, 6, (100, 3)), centers[:28] + rng.normal(size=(28, 3)) * 0.05])
+    points = points.astype(np.float32)
+    structure = rt.build_primitive_structure(rt.SphereGeometry(centers, radii), capacity=CAPACITY)
+    result = rt.closest_point(points, structure)
+    gap = np.linalg.norm(points[:, None].astype(np.float64) - centers[None], axis=-1) - radii[None]
+    surface = np.abs(gap)
+    best = np.argmin(surface, 1)
+    rows = np.arange(len(points))
+    clear = np.sort(surface, 1)[:, 1] - surface[rows, best] > 1e-4
+    np.testing.assert_array_equal(np.asarray(result.primitive_id)[clear], best[clear])
+    np.testing.assert_allclose(np.asarray(result.distance), surface[rows, best], atol=2e-6)
+    on_surface = np.linalg.norm(np.asarray(result.point) - centers[np.asarray(result.primitive_id)], axis=1)
+    np.testing.assert_allclose(on_surface, radii[np.asarray(result.primitive_id)], rtol=1e-5)
+    inside = np.any(gap < 0, 1)
+    assert inside.sum() >= 28
+    signed = np.asarray(rt.signed_distance(points, structure))
+    np.testing.assert_allclose(signed, np.where(inside, -1, 1) * surface[rows, best], atol=2e-6)
+    np.testing.assert_array_equal(np.asarray(rt.contains(points, structure)), inside)
+
+    def total(c, r, p):
+        s = rt.build_primitive_structure(rt.SphereGeometry(c, r), capacity=CAPACITY)
+        return jnp.sum(rt.closest_point(p, s).distance)
+
+    grads = jax.grad(total, argnums=(0, 1, 2))(jnp.asarray(centers), jnp.asarray(radii), jnp.asarray(points))
+    # d|p - q|/dp is the unit vector from the surface point; the chosen sphere's radius moves the surface by 1
+    direction = points - np.asarray(result.point)
+    unit = direction / np.linalg.norm(direction, axis=1, keepdims=True)
+    np.testing.assert_allclose(np.asarray(grads[2])[clear], unit[clear], atol=1e-4)
+    chosen = np.asarray(result.primitive_id)
+    sign = np.where(gap[rows, chosen] < 0, 1.0, -1.0)  # d|(|p - c| - r)|/dr
+    want_r = np.zeros(30)
+    np.add.at(want_r, chosen, sign)
+    np.testing.assert_allclose(np.asarray(grads[1]), want_r, atol=1e-4)
+    want_c = np.zeros((30, 3))
+    np.add.at(want_c, chosen, -unit)  # the centre moves the surface point with it
+    np.testing.assert_allclose(np.asarray(grads[0]), want_c, atol=1e-3)
