@@ -26,8 +26,8 @@ def test_each_kind_is_defined_once_and_matches_the_public_enum():
         assert rt.IntersectionType(kind.intersection_type).name == kind.name.upper()
         assert set(kind.coverage) == set(registry.BACKENDS)
         assert set(kind.fields.values()) <= set(kind.tags) | set(registry.SCENE_FIELDS.values())
-    with pytest.raises(ValueError, match="unknown geometry kind 'sphere'"):
-        registry.kind("sphere")
+    with pytest.raises(ValueError, match="unknown geometry kind 'disc'"):
+        registry.kind("disc")
 
 
 def test_geometries_name_their_kind_from_the_registry():
@@ -38,6 +38,8 @@ def test_geometries_name_their_kind_from_the_registry():
         (rt.MotionBoundingBoxGeometry, registry.BOUNDING_BOX),
         (rt.CurveGeometry, registry.CURVE),
         (rt.MotionCurveGeometry, registry.CURVE),
+        (rt.SphereGeometry, registry.SPHERE),
+        (rt.MotionSphereGeometry, registry.SPHERE),
     ]
     for cls, kind in pairs:
         assert cls.kind == kind.name
@@ -146,7 +148,7 @@ def _user_function(ray, candidate):
             False,
             1,
             "bounding-box geometry with user intersection functions (geometry 0: _user_function) below instances, "
-            "with keyframe motion or with curves is not covered by the GPU kernel (it traces "
+            "with keyframe motion or with curves or with spheres is not covered by the GPU kernel (it traces "
             "rt.intersection_functions.sphere, disk and capped_cylinder)",
         ),
         (
@@ -174,8 +176,8 @@ def _user_function(ray, candidate):
             "gpu",
             False,
             0,
-            "filters on non-opaque geometry below instances, with keyframe motion or with curves are not covered by "
-            "the GPU kernel",
+            "filters on non-opaque geometry below instances, with keyframe motion or with curves or with spheres are "
+            "not covered by the GPU kernel",
         ),
     ],
 )

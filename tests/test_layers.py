@@ -30,7 +30,7 @@ LAYERS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "traversal": (("traversal.",), ("math", "kinds")),
     # geometry descriptors and per-primitive records
     "geometry": (
-        ("geometry", "curves", "candidate", "ray", "primitive_data", "checks", "result", "normals"),
+        ("geometry", "curves", "spheres", "candidate", "ray", "primitive_data", "checks", "result", "normals"),
         ("math", "kinds"),
     ),
     # building structures (knows nothing of any traversal)
