@@ -569,3 +569,32 @@ def test_closest_point_and_signed_distance():
     want_c = np.zeros((30, 3))
     np.add.at(want_c, chosen, -unit)  # the centre moves the surface point with it
     np.testing.assert_allclose(np.asarray(grads[0]), want_c, atol=1e-3)
+
+
+# --- lifecycle, jit and vmap ---------------------------------------------------------------------------------------
+
+
+def test_refit_save_load_compact_and_vmap(tmp_path):
+    """A refit moves the spheres; saving, loading and compaction keep the hits; ``vmap`` over structures."""
+    rng = np.random.default_rng(12)
+    centers = rng.uniform(-2, 2, (20, 3)).astype(np.float32)
+    moved = (centers + 0.3).astype(np.float32)
+    origin = np.concatenate([moved[:, :2], np.full((20, 1), -9.0)], 1).astype(np.float32)
+    ray = rt.Ray(origin, np.tile(np.float32([[0, 0, 1]]), (20, 1)))
+    data = jnp.arange(20)
+    structure = rt.build_primitive_structure(rt.SphereGeometry(centers, 0.15, primitive_data=data))
+    refit = rt.refit(structure, rt.SphereGeometry(moved, 0.2, primitive_data=data))
+    fresh = rt.build_primitive_structure(rt.SphereGeometry(moved, 0.2, primitive_data=data))
+    intersector = rt.Intersector(rt.tags.primitive_data)
+    want = intersector.intersect(ray, fresh)
+    for other in (refit, rt.compact(refit)):
+        got = intersector.intersect(ray, other)
+        np.testing.assert_array_equal(np.asarray(got.distance), np.asarray(want.distance))
+    assert np.all(np.isfinite(np.asarray(want.distance)))
+    rt.save(tmp_path / "spheres.jaxrt", refit)
+    loaded = rt.load(tmp_path / "spheres.jaxrt")
+    np.testing.assert_array_equal(np.asarray(intersector.intersect(ray, loaded).distance), np.asarray(want.distance))
+    pair = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), structure, fresh)
+    both = jax.jit(jax.vmap(lambda s: rt.Intersector().intersect(ray, s).distance))(pair)
+    np.testing.assert_array_equal(np.asarray(both[1]), np.asarray(want.distance))
+    np.testing.assert_array_equal(np.asarray(both[0]), np.asarray(rt.Intersector().intersect(ray, structure).distance))
