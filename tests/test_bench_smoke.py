@@ -117,3 +117,16 @@ def test_custom_geometry_bench_reports_analytic_spheres_exactly(tmp_path):
         hits["non-opaque, alpha test in an intersection query's loop (~50% rejected)"]
         == hits["non-opaque, alpha filter (~50% rejected)"]
     )
+
+
+def test_spheres_bench_compares_builtin_spheres_with_boxes(tmp_path):
+    from jaxrt.bench import spheres
+
+    path = tmp_path / "spheres.json"
+    assert spheres.main(["--quick", "--json", str(path)]) == 0
+    builtin, boxes = json.loads(path.read_text())["rows"]
+    assert builtin["geometry"].startswith("built-in") and boxes["geometry"].startswith("boxes")
+    for row in (builtin, boxes):
+        assert row["hits"] > 0 and row["hit_mismatches"] == 0 and row["max_rel_error"] < 1e-5
+        assert row["trace"]["mrays_s"] > 0
+    assert builtin["bytes_per_primitive"] < boxes["bytes_per_primitive"]
