@@ -59,7 +59,8 @@ class SphereGeometry:
       centers: ``(N, 3)`` float32 (or float64 under x64) sphere centres.
       radii: ``(N,)`` float radii, one per sphere, or one scalar for all; each finite and ``>= 0``.
       primitive_data: optional pytree whose leaves have leading dimension ``N`` (per-sphere user data).
-      opaque: static; ``False`` sends candidates to the intersector's filter.
+      opaque: static; ``False`` sends candidates to the intersector's filter (one candidate per sphere and ray:
+        the hit described below; a rejected one drops the sphere for that ray).
 
     Hits report ``rt.IntersectionType.SPHERE``. A ray that starts inside a sphere (or enters it before its
     ``min_distance``) hits it where it leaves it, and ``sphere_front_facing`` (``rt.tags.sphere_data``) is
