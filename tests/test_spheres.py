@@ -598,3 +598,19 @@ def test_refit_save_load_compact_and_vmap(tmp_path):
     both = jax.jit(jax.vmap(lambda s: rt.Intersector().intersect(ray, s).distance))(pair)
     np.testing.assert_array_equal(np.asarray(both[1]), np.asarray(want.distance))
     np.testing.assert_array_equal(np.asarray(both[0]), np.asarray(rt.Intersector().intersect(ray, structure).distance))
+
+
+@pytest.mark.parametrize("backend", ["portable", "cpu"])
+def test_ray_masks_select_instances_of_spheres(backend):
+    """Two instances of one sphere structure with masks 1 and 2: each ray sees the instances its mask names."""
+    inner = rt.build_primitive_structure(rt.SphereGeometry([[0.0, 0.0, 0.0]], 1.0))
+    transforms = np.stack([np.eye(3, 4), np.eye(3, 4)]).astype(np.float32)
+    transforms[1, :, 3] = [0.0, 0.0, -4.0]  # behind the first
+    scene_structure = rt.build_instance_structure([inner], rt.Instances([0, 0], transforms, mask=[1, 2]))
+    masks = np.array([1, 2, 3, 4], np.uint32)
+    origin = np.tile(np.float32([[0, 0, 5]]), (4, 1))
+    direction = np.tile(np.float32([[0, 0, -1]]), (4, 1))
+    intersector = rt.Intersector(rt.tags.instancing, backend=backend)
+    result = intersector.intersect(rt.Ray(origin, direction, mask=masks), scene_structure)
+    np.testing.assert_array_equal(np.asarray(result.distance), np.float32([4, 8, 4, np.inf]))
+    np.testing.assert_array_equal(np.asarray(result.instance_id)[:, 0], [0, 1, 0, -1])
