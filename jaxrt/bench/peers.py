@@ -142,7 +142,7 @@ class Open3D:
         dropped afterwards)."""
         out = self.scene.cast_rays(self._rays(rays), nthreads=self.threads)
         distance = out["t_hit"].numpy()
-        hit = distance <= np.asarray(rays.max_distance, np.float32)
+        hit = np.isfinite(distance) & (distance <= np.asarray(rays.max_distance, np.float32))
         primitive = np.where(hit, out["primitive_ids"].numpy().astype(np.int64), -1)
         return Hits(np.where(hit, distance, np.inf), primitive)
 
