@@ -130,3 +130,41 @@ def test_spheres_bench_compares_builtin_spheres_with_boxes(tmp_path):
         assert row["hits"] > 0 and row["hit_mismatches"] == 0 and row["max_rel_error"] < 1e-5
         assert row["trace"]["mrays_s"] > 0
     assert builtin["bytes_per_primitive"] < boxes["bytes_per_primitive"]
+
+
+def test_cpu_bench_rows_name_every_tracer(capsys):
+    """``python -m jaxrt.bench.cpu`` on a tiny scene: a row per ray set and query with the kernel, ``intersect``
+    and (``--jit``) ``intersect`` inside ``jax.jit``, Embree where embreex imports, Open3D where open3d does."""
+    from jaxrt._src.traversal import cpu
+    from jaxrt.bench import cpu as bench_cpu
+    from jaxrt.bench.peers import embree_unavailable_reason, open3d_unavailable_reason
+
+    if cpu.unavailable_reason() is not None:
+        pytest.skip(cpu.unavailable_reason())
+    assert bench_cpu.main(["--scenes", "sphere", "--rays", "256", "--repeats", "1", "--threads", "1", "--jit", "--queries", "closest"]) == 0  # fmt: skip
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("sphere")]
+    assert len(lines) == 2  # primary and diffuse rays
+    for line in lines:
+        assert "kernel 1t" in line and "intersect 1t" in line and "jit 1t" in line
+        assert ("embree 1t" in line) == (embree_unavailable_reason() is None)
+        assert ("open3d" in line) == (open3d_unavailable_reason() is None)
+
+
+def test_open3d_peer_agrees_with_embree():
+    """Open3D's nearest hits and occlusion answers on the bench's rays equal Embree's (both Embree underneath;
+    the shared decisions are hit or miss and, away from ties, the primitive)."""
+    from jaxrt.bench.peers import Embree, Open3D, embree_unavailable_reason, open3d_unavailable_reason
+
+    for reason in (open3d_unavailable_reason(), embree_unavailable_reason()):
+        if reason is not None:
+            pytest.skip(reason)
+    scene = noisy_sphere(2_000, seed=1)
+    rays = diffuse_rays(scene.vertices, scene.indices, 512, seed=0)
+    embree, open3d = Embree(scene.vertices, scene.indices), Open3D(scene.vertices, scene.indices)
+    embree.build()
+    open3d.build()
+    ours, theirs = open3d.closest(rays), embree.closest(rays)
+    np.testing.assert_array_equal(np.isfinite(ours.distance), np.isfinite(theirs.distance))
+    assert np.mean(ours.primitive == theirs.primitive) > 0.99
+    np.testing.assert_allclose(ours.distance[np.isfinite(ours.distance)], theirs.distance[np.isfinite(theirs.distance)], rtol=1e-5)  # fmt: skip
+    np.testing.assert_array_equal(open3d.any_hit(rays), embree.any_hit(rays))

@@ -125,6 +125,38 @@ def test_box_rows_are_laid_out_once_per_structure_and_dropped_with_it():
     assert key not in cpu._BOX_ROWS
 
 
+def test_box_rows_inside_jit_are_laid_out_once_per_structure_and_dropped_with_it():
+    """Inside ``jit`` the callback receives a structure passed as an argument in place: its box rows are laid
+    out on the first call, found again by the buffers' addresses while the arrays that own them live, kept
+    apart per structure, and dropped with the structure; the results equal the top-level call's."""
+    import gc
+
+    import jax
+
+    v, f = icosphere(2)
+    first = rt.build_primitive_structure(rt.TriangleGeometry(v.astype(np.float32), f))
+    second = rt.build_primitive_structure(rt.TriangleGeometry(v.astype(np.float32) * 2, f))
+    rays = rt.Ray(*(np.asarray(a) for a in _rays(64)))
+    intersector = rt.Intersector(rt.tags.triangle_data, rt.tags.stats, backend="cpu")
+    traced = jax.jit(intersector.intersect)
+    key = (first.node_lower.unsafe_buffer_pointer(), first.node_upper.unsafe_buffer_pointer())
+    result = traced(rays, first)
+    rows = cpu._TRACED_ROWS[key][2]
+    np.testing.assert_array_equal(rows, cpu.box_rows(np.asarray(first.node_lower), np.asarray(first.node_upper)))
+    traced(rays, first)
+    assert cpu._TRACED_ROWS[key][2] is rows  # not laid out again
+    expected = intersector.intersect(rays, first)
+    for name in FIELDS:
+        np.testing.assert_array_equal(np.asarray(result[name]), np.asarray(expected[name]), err_msg=name)
+    other = traced(rays, second)
+    other_key = (second.node_lower.unsafe_buffer_pointer(), second.node_upper.unsafe_buffer_pointer())
+    assert other_key in cpu._TRACED_ROWS and cpu._TRACED_ROWS[other_key][2] is not rows
+    assert not np.array_equal(np.asarray(other["distance"]), np.asarray(result["distance"]))
+    del first, result, expected
+    gc.collect()
+    assert key not in cpu._TRACED_ROWS and other_key in cpu._TRACED_ROWS
+
+
 @pytest.mark.parametrize(
     "shape,dtype", [((N,), np.bool_), ((N, 3), np.float32), ((N, 0), np.int32), ((N, 2, 3), np.float64)]
 )

@@ -9,15 +9,17 @@ keeping the best round compares the tracers under the same load):
   as a top-level call keeps them);
 - ``intersect``: the whole ``Intersector.intersect`` call (ray sanitising, the host callback with its argument
   copies, the result fields), synchronised;
-- ``embree``: Embree through embreex (its single-ray loop on one thread).
+- ``embree``: Embree through embreex (its single-ray loop on one thread);
+- ``open3d``: Open3D's ``RaycastingScene`` (Embree underneath) on every core, as a user calls it (left out,
+  with the reason printed, where ``open3d`` does not import).
 
 jaxrt runs with each thread count of ``--threads`` (``JAXRT_CPU_THREADS``; default 1 and every core). The
 ``per core / embree`` column divides the ``intersect`` rate by the thread count and by Embree's one-thread
-rate. ``--queries`` adds hit lists: ``k4`` (``max_hits=4``) and ``count`` (``rt.count_intersections``), where
+rate; ``/ open3d`` divides each thread count's ``intersect`` rate by Open3D's (on every core). ``--queries`` adds hit lists: ``k4`` (``max_hits=4``) and ``count`` (``rt.count_intersections``), where
 the third tracer is ``portable``, the same call on the portable traversal (``backend="portable"``, which
 runs on one thread), in place of Embree (embreex exposes no multi-hit or counting query). ``--quality`` picks the build (``fast``: the LBVH, the default; ``high``: clustering, closer to the
 SAH-quality trees Embree builds); several qualities give a row each. Flags: ``--scenes``, ``--rays``,
-``--repeats``, ``--threads``, ``--quality``, ``--queries``, ``--data-dir``, ``--json PATH``.
+``--repeats``, ``--threads``, ``--quality``, ``--queries``, ``--jit`` (also ``intersect`` inside ``jax.jit``), ``--data-dir``, ``--json PATH``.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ from typing import Any
 import jax
 
 import jaxrt as rt
-from jaxrt.bench.peers import Embree, embree_unavailable_reason
+from jaxrt.bench.peers import Embree, Open3D, embree_unavailable_reason, open3d_unavailable_reason
 from jaxrt.bench.report import machine_info
 from jaxrt.bench.scenes import load_scene
 from jaxrt.bench.suite import RAY_KINDS
@@ -70,6 +72,16 @@ def _query_call(query: str, backend: str, structure: Any, rays: rt.Ray) -> Calla
     return functools.partial(_intersector(query, backend).intersect, rays, structure)
 
 
+def _jit_call(query: str, structure: Any, rays: rt.Ray) -> Callable[[], Any]:
+    """``intersect`` inside ``jax.jit``, rays and structure passed as arguments (as the docs advise)."""
+    if QUERIES[query] is None:
+        intersector = rt.Intersector(backend="cpu")
+        traced = jax.jit(lambda r, s: rt.count_intersections(r, s, intersector))
+    else:
+        traced = jax.jit(_intersector(query, "cpu").intersect)
+    return functools.partial(traced, rays, structure)
+
+
 def _kernel_call(structure: Any, intersector: rt.Intersector, rays: rt.Ray) -> Callable[[], Any]:
     """The compiled traversal alone on host arrays (the arguments the intersector's callback receives, and the
     structure's box rows, which a top-level call lays out once per structure)."""
@@ -89,15 +101,20 @@ def measure_scene(
     data_dir: str | None = None,
     quality: str = "fast",
     queries: Sequence[str] = ("closest", "any"),
+    jit: bool = False,
 ) -> list[dict[str, Any]]:
     """Rows of Mrays/s (best of ``repeats`` alternating rounds) for one scene built with ``quality``, one per
-    ray set and query (:data:`QUERIES`)."""
+    ray set and query (:data:`QUERIES`); ``jit`` adds ``intersect`` inside ``jax.jit``."""
     scene = load_scene(name, data_dir=data_dir)
     structure = rt.build_primitive_structure(rt.TriangleGeometry(scene.vertices, scene.indices), quality=quality)
     embree = None
     if embree_unavailable_reason() is None:
         embree = Embree(scene.vertices, scene.indices)
         embree.build()
+    open3d = None
+    if open3d_unavailable_reason() is None:
+        open3d = Open3D(scene.vertices, scene.indices)
+        open3d.build()
     rows = []
     for kind in ("primary", "diffuse"):
         batch = RAY_KINDS[kind](scene, n_rays, 0)
@@ -108,14 +125,19 @@ def measure_scene(
             for count in threads:
                 calls[f"kernel {count}t"] = kernel
                 calls[f"intersect {count}t"] = _query_call(query, "cpu", structure, rays)
+                if jit:
+                    calls[f"jit {count}t"] = _jit_call(query, structure, rays)
             if query in ("k4", "count"):  # no Embree query to compare: the portable traversal
                 calls["portable 1t"] = _query_call(query, "portable", structure, rays)
             elif embree is not None:
                 calls["embree 1t"] = functools.partial(embree.any_hit if query == "any" else embree.closest, batch)
+            if query in ("closest", "any") and open3d is not None:
+                calls["open3d"] = functools.partial(open3d.any_hit if query == "any" else open3d.closest, batch)
             best = dict.fromkeys(calls, float("inf"))
             for round_ in range(repeats + 1):  # round 0 warms up (compiles)
                 for key, fn in calls.items():
-                    os.environ["JAXRT_CPU_THREADS"] = key.split()[-1][:-1]
+                    if key.endswith("t"):
+                        os.environ["JAXRT_CPU_THREADS"] = key.split()[-1][:-1]
                     seconds = _best(fn, float("inf"))
                     if round_:
                         best[key] = min(best[key], seconds)
@@ -132,6 +154,9 @@ def _format(row: dict[str, Any], threads: Sequence[int]) -> str:
         parts.append(
             f"kernel {count}t {row[f'kernel {count}t']:5.2f}  intersect {count}t {row[f'intersect {count}t']:5.2f}"
         )
+    for count in threads:
+        if f"jit {count}t" in row:
+            parts.append(f"jit {count}t {row[f'jit {count}t']:5.2f}")
     if "portable 1t" in row:
         parts.append(f"portable 1t {row['portable 1t']:5.2f}")
         parts.append(
@@ -143,6 +168,11 @@ def _format(row: dict[str, Any], threads: Sequence[int]) -> str:
         parts.append(
             "per core / embree "
             + " ".join(f"{count}t {row[f'intersect {count}t'] / count / row['embree 1t']:.2f}" for count in threads)
+        )
+    if "open3d" in row:
+        parts.append(f"open3d {row['open3d']:5.2f}")
+        parts.append(
+            "/ open3d " + " ".join(f"{count}t {row[f'intersect {count}t'] / row['open3d']:.2f}" for count in threads)
         )
     return " | ".join(parts)
 
@@ -158,6 +188,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument(
         "--queries", nargs="+", default=["closest", "any"], choices=list(QUERIES), help="queries (default closest any)"
     )
+    parser.add_argument("--jit", action="store_true", help="also time intersect inside jax.jit")
     parser.add_argument("--data-dir", help="shared mesh folder (default: $JAXRT_DATA_DIR or ../shared/data)")
     parser.add_argument("--json", metavar="PATH", help="also write the rows and the machine info to PATH")
     args = parser.parse_args(argv)
@@ -167,11 +198,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         raise SystemExit(f"python -m jaxrt.bench.cpu: {cpu.unavailable_reason()}")
     os.environ.pop("JAXRT_CPU_THREADS", None)
     threads = args.threads or sorted({1, cpu.threads()})
+    if open3d_unavailable_reason() is not None:
+        print(f"open3d left out: {open3d_unavailable_reason()}")
     print(f"Mrays/s, {args.rays:,} rays, best of {args.repeats} alternating rounds; load average {os.getloadavg()}")
     rows = []
     for name in args.scenes:
         for quality in args.quality:
-            for row in measure_scene(name, args.rays, args.repeats, threads, args.data_dir, quality, args.queries):
+            for row in measure_scene(
+                name, args.rays, args.repeats, threads, args.data_dir, quality, args.queries, args.jit
+            ):
                 print(_format(row, threads), flush=True)
                 rows.append(row)
     print(f"load average at the end {os.getloadavg()}")

@@ -182,7 +182,7 @@ def _trace(params: tuple, arrays: list[np.ndarray], boxes: np.ndarray | None) ->
     if levels == 0 and not hit_list and not params[9]:  # triangles only, no instances: the lean loop
         rays = arrays[_RAYS : _RAYS + 5]
         if boxes is None:
-            boxes = box_rows(arrays[0], arrays[1])
+            boxes = _box_rows_in_place(arrays[0], arrays[1])
         run = functools.partial(
             cpu_kernel.trace_flat, *arrays[:4], boxes, *rays, consts, params[0], params[3], bool(params[4]), params[5],
             counter, CHUNK, n, out[0], out[1], *out[3:], bool(params[10]), *arrays[9:15], arrays[_RAYS + 6],
@@ -277,6 +277,54 @@ def _box_rows_of(structure: Any) -> jax.Array:
     _BOX_ROWS[id(lower)] = (weakref.ref(lower), weakref.ref(upper), words)
     weakref.finalize(lower, _BOX_ROWS.pop, id(lower), None)
     return words
+
+
+#: Box rows of structures traced inside ``jit`` (whose callback receives the structure's own buffers):
+#: ``(address of node_lower, address of node_upper) -> (node_lower, node_upper, rows)``, the first two weak
+#: references to the live arrays that own those buffers. An entry is used only while both arrays are alive,
+#: not deleted (donated) and still at those addresses: a live array's buffer holds its values and nothing else.
+_TRACED_ROWS: dict[tuple[int, int], tuple[Any, Any, np.ndarray]] = {}
+
+
+def _owner(view: np.ndarray, candidates: Any) -> Any:
+    """The live, ready JAX array among ``candidates`` whose buffer is ``view``'s memory, or ``None``."""
+    for array in candidates:
+        if (
+            array is not None
+            and array.shape == view.shape
+            and array.dtype == view.dtype
+            and not array.is_deleted()
+            and array.is_ready()  # a pending buffer's address would wait, holding the GIL
+            and array.unsafe_buffer_pointer() == view.ctypes.data
+        ):
+            return array
+    return None
+
+
+def _drop_traced(key: tuple[int, int], ref: Any) -> None:
+    entry = _TRACED_ROWS.get(key)
+    if entry is not None and entry[0] is ref:
+        del _TRACED_ROWS[key]
+
+
+def _box_rows_in_place(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """The box rows of node arrays a callback received (:func:`box_rows`): laid out once per structure where
+    the arrays are the buffers of live JAX arrays (a structure passed to a jitted function: its buffers reach
+    the callback in place), else on every call (node arrays computed inside the program)."""
+    if lower.size == 0:
+        return box_rows(lower, upper)
+    key = (lower.ctypes.data, upper.ctypes.data)
+    entry = _TRACED_ROWS.get(key)
+    if entry is not None and _owner(lower, [entry[0]()]) is not None and _owner(upper, [entry[1]()]) is not None:
+        return entry[2]
+    rows = box_rows(lower, upper)
+    live = [a for a in jax.live_arrays() if a.shape in (lower.shape, upper.shape)]
+    owners = _owner(lower, live), _owner(upper, live)
+    if owners[0] is not None and owners[1] is not None:
+        ref = weakref.ref(owners[0])
+        _TRACED_ROWS[key] = (ref, weakref.ref(owners[1]), rows)
+        weakref.finalize(owners[0], _drop_traced, key, ref)
+    return rows
 
 
 def host_scene(structure: Any, rays: Any, *, with_rays: bool = True) -> tuple[np.ndarray, jax.Array] | None:
