@@ -43,6 +43,11 @@ def sqrt(x):
 
 
 @triton.jit
+def atan2(y, x):
+    return tl.extra.libdevice.atan2(y, x)
+
+
+@triton.jit
 def div_rn(a, b):
     return tl.math.div_rn(a, b)
 
