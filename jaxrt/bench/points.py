@@ -14,7 +14,7 @@ a Gaussian of 1% of the bounding-box diagonal; half uniform in the bounding box 
   closest point, ``mesh_query_point_sign_winding_number`` for the signed distance) when ``warp`` imports.
 
 Flags: ``--scenes``, ``--points``, ``--reference-points``, ``--repeats``, ``--data-dir``, ``--quick``,
-``--peers``, ``--json PATH``.
+``--peers``, ``--backend`` (the walk: ``auto``, ``portable``, ``cpu``, ``gpu``), ``--json PATH``.
 """
 
 from __future__ import annotations
@@ -161,9 +161,10 @@ def _warp_peer(vertices: np.ndarray, indices: np.ndarray, points: np.ndarray, re
 
 
 def bench_points(
-    name: str, sizes: dict[str, Any], data_dir: str | None, seed: int, peers: bool = False
+    name: str, sizes: dict[str, Any], data_dir: str | None, seed: int, peers: bool = False, backend: str = "auto"
 ) -> dict[str, Any]:
-    """Speeds and errors of the point queries on one scene (see the module docstring)."""
+    """Speeds and errors of the point queries on one scene (see the module docstring); ``backend``: the walk
+    (``rt.closest_point``'s argument)."""
     scene = load_scene(name, n_triangles=sizes.get("triangles", 100_000), seed=seed, data_dir=data_dir)
     vertices, indices = scene.vertices, scene.indices
     triangles = vertices[indices]
@@ -172,30 +173,34 @@ def bench_points(
     n, repeats = len(points), sizes["repeats"]
     diagonal = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
     out: dict[str, Any] = {"scene": name, "triangles": len(indices), "points": n, "diagonal": diagonal}
+    out["backend"] = backend
+    b = backend
 
-    t_closest, closest = timed(lambda: rt.closest_point(points, structure), repeats)
-    t_signed, signed = timed(lambda: rt.signed_distance(points, structure), repeats)
-    t_wind, _ = timed(lambda: rt.winding_number(points, structure), repeats)
+    t_closest, closest = timed(lambda: rt.closest_point(points, structure, backend=b), repeats)
+    t_signed, signed = timed(lambda: rt.signed_distance(points, structure, backend=b), repeats)
+    t_wind, _ = timed(lambda: rt.winding_number(points, structure, backend=b), repeats)
     m = min(n, sizes["reference_points"])
     subset = np.concatenate([points[: m // 2], points[n // 2 : n // 2 + m - m // 2]])  # near and uniform
-    t_exact, exact = timed(lambda: rt.winding_number(subset, structure, exact=True), min(repeats, 1))
+    t_exact, exact = timed(lambda: rt.winding_number(subset, structure, exact=True, backend=b), min(repeats, 1))
     out["closest_point"] = t_closest.as_dict(n, "mpoints_s")
     out["signed_distance"] = t_signed.as_dict(n, "mpoints_s")
     out["winding_fast"] = t_wind.as_dict(n, "mpoints_s")
     out["winding_exact"] = t_exact.as_dict(m, "mpoints_s")
 
     ref, every = reference_closest(subset, triangles)
-    got = rt.closest_point(subset, structure)
+    got = rt.closest_point(subset, structure, backend=b)
     distance = np.asarray(got.distance, np.float64)
     prim = np.asarray(got.primitive_id)
     tie = 1e-6 * diagonal
     out["max_distance_error_rel"] = float(np.max(np.abs(distance - ref)) / diagonal)
     out["wrong_primitive"] = int(np.sum(every[np.arange(m), prim] > ref + tie))
     winding = reference_winding(subset, triangles)
-    fast_inside = np.asarray(rt.contains(subset, structure))
+    fast_inside = np.asarray(rt.contains(subset, structure, backend=b))
     out["sign_disagree_fast"] = int(np.sum(fast_inside != (winding >= 0.5)))
     out["sign_disagree_exact"] = int(np.sum((np.asarray(exact) >= 0.5) != (winding >= 0.5)))
-    out["max_winding_error_fast"] = float(np.max(np.abs(np.asarray(rt.winding_number(subset, structure)) - winding)))
+    out["max_winding_error_fast"] = float(
+        np.max(np.abs(np.asarray(rt.winding_number(subset, structure, backend=b)) - winding))
+    )
     out["reference_points"] = m
 
     peer = _open3d_scene(vertices, indices)
@@ -278,6 +283,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--quick", action="store_true", help="tiny sizes and one repeat: a smoke test")
     parser.add_argument("--peers", action="store_true", help="also NVIDIA Warp's mesh point queries (if installed)")
+    parser.add_argument(
+        "--backend", choices=("auto", "portable", "cpu", "gpu"), default="auto", help="the walk (default: auto)"
+    )
     parser.add_argument("--json", metavar="PATH", help="also write every number and the machine info to PATH")
     return parser
 
@@ -287,11 +295,13 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     args = _parser().parse_args(argv)
     given = {k: getattr(args, k) for k in ("points", "reference_points", "repeats", "triangles")}
     sizes = {**(_QUICK if args.quick else _DEFAULTS), **{k: v for k, v in given.items() if v is not None}}
-    results: dict[str, Any] = {"machine": machine_info(), "config": dict(sizes, seed=args.seed), "scenes": []}
+    config = dict(sizes, seed=args.seed, backend=args.backend)
+    results: dict[str, Any] = {"machine": machine_info(), "config": config, "scenes": []}
     results["skipped"] = {}
     for name in progress(args.scenes, desc="scenes"):
         try:
-            results["scenes"].append(bench_points(name, sizes, args.data_dir, args.seed, peers=args.peers))
+            row = bench_points(name, sizes, args.data_dir, args.seed, peers=args.peers, backend=args.backend)
+            results["scenes"].append(row)
         except FileNotFoundError as error:
             results["skipped"][name] = str(error)
     print(format_table(results))

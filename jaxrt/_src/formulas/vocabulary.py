@@ -69,7 +69,8 @@ def sqrt(x):
 
 
 def atan2(y, x):
-    """The angle of ``(x, y)`` in ``[-pi, pi]`` (the backend's library function: not correctly rounded)."""
+    """The angle of ``(x, y)`` in ``[-pi, pi]``: the backend's library function (XLA's and Numba's), a
+    polynomial in Triton; none is correctly rounded, so the backends may differ by a few ulps."""
     return math.atan2(y, x)
 
 
