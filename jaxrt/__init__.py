@@ -35,6 +35,7 @@ from jaxrt._src.prepacked import build_primitive_structure, refit
 from jaxrt._src.primitives.curve import CurveOptions
 from jaxrt._src.query import IntersectionQuery, intersection_query
 from jaxrt._src.ray import Ray
+from jaxrt._src.sdf_grid import sdf_grid
 from jaxrt._src.result import IntersectionResult, IntersectionType
 from jaxrt._src.sharding import device_mesh, intersect_sharded, replicate
 from jaxrt._src.sizes import StructureSizes, sah_cost, structure_sizes
@@ -99,6 +100,7 @@ __all__ = [
     "sah_cost",
     "save",
     "shading",
+    "sdf_grid",
     "signed_distance",
     "structure_sizes",
     "tags",

@@ -223,3 +223,21 @@ def test_compiled_walk_on_random_soups(seed, scale_exp, offset_exp):
     assert ((a == b) | (np.abs(every[rows, a] - every[rows, b]) <= 3e-6 * extent)).all()
     reference = brute_winding(points, triangles)
     np.testing.assert_allclose(np.asarray(rt.winding_number(points, structure, exact=True, backend="cpu")), reference, atol=2e-4)  # fmt: skip
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_sdf_grid_equals_signed_distance_at_the_grid_points(sphere, backend, monkeypatch):
+    from jaxrt._src import sdf_grid
+
+    _, structure, _ = sphere
+    monkeypatch.setattr(sdf_grid, "STEP_POINTS", 100)  # several steps, the last one padded
+    bounds = np.array([[-1.5, -1.2, -1.0], [1.5, 1.3, 1.1]])
+    grid = np.asarray(rt.sdf_grid(structure, bounds, (7, 5, 4), backend=backend))
+    axes = [np.linspace(bounds[0, a], bounds[1, a], r) for a, r in enumerate((7, 5, 4))]
+    points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).astype(np.float32)
+    np.testing.assert_array_equal(grid, np.asarray(rt.signed_distance(points, structure, backend=backend)))
+    assert (grid[3, 2, 2] < 0) and (grid[0, 0, 0] > 0)
+    with pytest.raises(ValueError, match="sdf_grid: resolution must be"):
+        rt.sdf_grid(structure, bounds, 1)
+    with pytest.raises(ValueError, match="sdf_grid: bounds must be"):
+        rt.sdf_grid(structure, bounds[::-1], 4)
