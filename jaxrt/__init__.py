@@ -35,8 +35,8 @@ from jaxrt._src.prepacked import build_primitive_structure, refit
 from jaxrt._src.primitives.curve import CurveOptions
 from jaxrt._src.query import IntersectionQuery, intersection_query
 from jaxrt._src.ray import Ray
-from jaxrt._src.sdf_grid import sdf_grid
 from jaxrt._src.result import IntersectionResult, IntersectionType
+from jaxrt._src.sdf_grid import sdf_grid
 from jaxrt._src.sharding import device_mesh, intersect_sharded, replicate
 from jaxrt._src.sizes import StructureSizes, sah_cost, structure_sizes
 from jaxrt._src.structures import PrimitiveAccelerationStructure
