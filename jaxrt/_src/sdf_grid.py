@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 from collections.abc import Sequence
@@ -11,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from jaxrt._src.point_query import check_structure
+from jaxrt._src.point_query import check_not_empty, check_structure
 from jaxrt._src.structures import PrimitiveAccelerationStructure
 from jaxrt._src.topology import warn_if_open
 from jaxrt._src.winding import signed_distance
@@ -68,22 +69,34 @@ def sdf_grid(
     dtype = structure.leaf_triangle.dtype
     corners = np.asarray(bounds, np.float64)
     if corners.shape != (2, 3) or not np.isfinite(corners).all() or (corners[0] > corners[1]).any():
-        raise ValueError(f"sdf_grid: bounds must be finite (lower, upper) corners (2, 3), lower <= upper; got {bounds!r}")
+        raise ValueError(
+            f"sdf_grid: bounds must be finite (lower, upper) corners (2, 3), lower <= upper; got {bounds!r}"
+        )
+    check_not_empty(structure, "sdf_grid")
     warn_if_open(structure, "sdf_grid")
     axes = [jnp.asarray(np.linspace(corners[0, a], corners[1, a], r), dtype) for a, r in enumerate((rx, ry, rz))]
-    planes = max(1, min(rx, STEP_POINTS // (ry * rz)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # warned above, once, as sdf_grid
+        return _grid(structure, *axes, beta=float(beta), backend=backend, step_points=STEP_POINTS)
+
+
+@functools.partial(jax.jit, static_argnames=("beta", "backend", "step_points"))
+def _grid(
+    structure, xs: jax.Array, ys: jax.Array, zs: jax.Array, *, beta: float, backend: str, step_points: int
+) -> jax.Array:
+    """The grid over the axes' coordinates, a few planes of the first axis a step."""
+    rx, ry, rz = xs.shape[0], ys.shape[0], zs.shape[0]
+    planes = max(1, min(rx, step_points // (ry * rz)))
     steps = math.ceil(rx / planes)
-    yz = jnp.stack(jnp.meshgrid(axes[1], axes[2], indexing="ij"), axis=-1)  # (ry, rz, 2)
+    yz = jnp.stack(jnp.meshgrid(ys, zs, indexing="ij"), axis=-1)  # (ry, rz, 2)
 
     def step(first):
-        x = axes[0][jnp.minimum(first + jnp.arange(planes), rx - 1)]  # the last step repeats the last plane
+        x = xs[jnp.minimum(first + jnp.arange(planes), rx - 1)]  # the last step repeats the last plane
         points = jnp.concatenate(
             [jnp.broadcast_to(x[:, None, None, None], (planes, ry, rz, 1)), jnp.broadcast_to(yz, (planes, ry, rz, 2))],
             axis=-1,
         )
         return signed_distance(points, structure, beta=beta, backend=backend)
 
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UserWarning)  # warned above, once, as sdf_grid
-        out = lax.map(step, jnp.arange(steps, dtype=jnp.int32) * planes)
+    out = lax.map(step, jnp.arange(steps, dtype=jnp.int32) * planes)
     return out.reshape(steps * planes, ry, rz)[:rx]

@@ -14,7 +14,7 @@ a Gaussian of 1% of the bounding-box diagonal; half uniform in the bounding box 
   closest point, ``mesh_query_point_sign_winding_number`` for the signed distance) when ``warp`` imports.
 
 Flags: ``--scenes``, ``--points``, ``--reference-points``, ``--repeats``, ``--data-dir``, ``--quick``,
-``--peers``, ``--backend`` (the walk: ``auto``, ``portable``, ``cpu``, ``gpu``), ``--json PATH``.
+``--peers``, ``--grid N [N ...]`` (dense ``rt.sdf_grid`` rows of ``N^3`` points), ``--backend`` (the walk: ``auto``, ``portable``, ``cpu``, ``gpu``), ``--json PATH``.
 """
 
 from __future__ import annotations
@@ -226,6 +226,19 @@ def bench_points(
             np.max(np.abs(warp["closest_values"] - np.asarray(closest.distance))) / diagonal
         )
         out["warp_sign_disagree"] = int(np.sum((warp["signed_values"] < 0) != (np.asarray(signed) < 0)))
+    lo, hi = vertices.min(0).astype(np.float64), vertices.max(0).astype(np.float64)
+    bounds = np.stack([lo - 0.1 * (hi - lo), hi + 0.1 * (hi - lo)])
+    for r in sizes.get("grids") or ():
+        t_grid, grid = timed(lambda r=r: rt.sdf_grid(structure, bounds, r, backend=b), min(repeats, 2))
+        out[f"grid_{r}"] = dict(t_grid.as_dict(r**3, "mpoints_s"), resolution=r)
+        # A sample of the grid against signed_distance at the same points.
+        rng = np.random.default_rng(seed)
+        index = rng.integers(0, r, (min(256, r**3), 3))
+        axes = [np.linspace(bounds[0, a], bounds[1, a], r) for a in range(3)]
+        sample = np.stack([axes[a][index[:, a]] for a in range(3)], axis=-1).astype(np.float32)
+        want = np.asarray(rt.signed_distance(sample, structure, backend=b))
+        got = np.asarray(grid)[index[:, 0], index[:, 1], index[:, 2]]
+        out[f"grid_{r}"]["max_diff_rel"] = float(np.max(np.abs(got - want)) / diagonal)
     return out
 
 
@@ -265,6 +278,12 @@ def format_table(results: dict[str, Any]) -> str:
                 f"Mpt/s (jaxrt {r['signed_distance']['mpoints_s']:.3f}; signs differ on "
                 f"{r['warp_sign_disagree']}/{r['points']})"
             )
+        for key in sorted(k for k in r if k.startswith("grid_")):
+            g = r[key]
+            lines.append(
+                f"{blank} {'sdf_grid ' + str(g['resolution']) + '^3':18} {g['mpoints_s']:11.3f} {'-':>12}  "
+                f"{g['median_s']:.2f} s; max |grid - signed_distance| {g['max_diff_rel']:.1e} diag (256 cells)"
+            )
     lines.extend(warp_lines)
     for name, why in results.get("skipped", {}).items():
         lines.append(f"{name}: skipped ({why})")
@@ -284,6 +303,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--quick", action="store_true", help="tiny sizes and one repeat: a smoke test")
     parser.add_argument("--peers", action="store_true", help="also NVIDIA Warp's mesh point queries (if installed)")
     parser.add_argument(
+        "--grid", type=int, nargs="+", metavar="N", help="also rt.sdf_grid of N^3 points (bounds: +10%%)"
+    )
+    parser.add_argument(
         "--backend", choices=("auto", "portable", "cpu", "gpu"), default="auto", help="the walk (default: auto)"
     )
     parser.add_argument("--json", metavar="PATH", help="also write every number and the machine info to PATH")
@@ -295,6 +317,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     args = _parser().parse_args(argv)
     given = {k: getattr(args, k) for k in ("points", "reference_points", "repeats", "triangles")}
     sizes = {**(_QUICK if args.quick else _DEFAULTS), **{k: v for k, v in given.items() if v is not None}}
+    sizes["grids"] = list(args.grid or ())
     config = dict(sizes, seed=args.seed, backend=args.backend)
     results: dict[str, Any] = {"machine": machine_info(), "config": config, "scenes": []}
     results["skipped"] = {}
