@@ -297,12 +297,23 @@ def cpu_exact_winding(points: jax.Array, structure: Any, box_table: jax.Array | 
     return _call(_exact_host, shape, args, (2, 3, 3, 1, 1))
 
 
+def _sorted(walk, points: jax.Array) -> jax.Array:
+    """``walk(points)`` with the points queued along a Morton curve (the lanes of a warp then walk similar paths)
+    and the results put back in order; non-finite points (misses) sort anywhere."""
+    from jaxrt._src.point_traversal import morton_order
+
+    finite = jnp.all(jnp.isfinite(points), axis=-1, keepdims=True)
+    order = morton_order(jnp.where(finite, points, 0))
+    out = walk(points[order])
+    return jnp.zeros_like(out).at[order].set(out)
+
+
 def gpu_nearest(points: jax.Array, structure: Any, box_table: jax.Array | None, limit2: jax.Array) -> jax.Array:
     """:func:`cpu_nearest` by the Triton kernel (:mod:`jaxrt._src.traversal.triton_points`)."""
     from jaxrt._src.traversal import triton_points
 
     boxes, box_leaf = box_leaves(structure, box_table)
-    return triton_points.nearest(points, structure, boxes, box_leaf, limit2)
+    return _sorted(lambda p: triton_points.nearest(p, structure, boxes, box_leaf, limit2), points)
 
 
 def gpu_winding(points: jax.Array, structure: Any, box_table: jax.Array | None, dipoles: Any) -> jax.Array:
@@ -310,7 +321,7 @@ def gpu_winding(points: jax.Array, structure: Any, box_table: jax.Array | None, 
     from jaxrt._src.traversal import triton_points
 
     boxes, box_leaf = box_leaves(structure, box_table)
-    return triton_points.fast_winding(points, structure, boxes, box_leaf, dipoles)
+    return _sorted(lambda p: triton_points.fast_winding(p, structure, boxes, box_leaf, dipoles), points)
 
 
 def gpu_exact_winding(points: jax.Array, structure: Any, box_table: jax.Array | None) -> jax.Array:
