@@ -262,6 +262,9 @@ def _launch(kernel: str, programs: int, args: tuple, out_shape: tuple, params: d
     """Run kernel ``kernel`` of this module through jax-triton (outputs after the inputs)."""
     import jax_triton as jt
 
+    from jaxrt._src.traversal import kernel_cache
+
+    kernel_cache.install()
     out = jt.triton_call(
         *args,
         kernel=globals()[kernel],
