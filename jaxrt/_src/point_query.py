@@ -9,6 +9,10 @@ below its box distance is dropped. The traversal picks the primitive under ``sto
 point is then computed again differentiably, so distances and points differentiate with respect to the
 points and the vertices (holding the chosen primitive fixed), as hits do in the intersector.
 
+This is the portable walk (``backend="portable"``); the compiled walks of
+:mod:`jaxrt._src.traversal.points` (Numba on the CPU, Triton on the GPU) make the same decisions and run by
+default where they cover the structure. Every walk only picks the leaf: :func:`_fields_flat` computes the result.
+
 Supported: primitive structures of triangle and bounding-box geometry (a box's distance is that of the solid
 box: 0 inside). Instance structures and curve geometry raise ``NotImplementedError``.
 """

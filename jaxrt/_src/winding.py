@@ -16,6 +16,9 @@ radius from ``c`` to the farthest corner of the subtree's box). A closed box pri
 0). Every internal node of the LBVH covers a contiguous range of leaves, so every node's sums are a
 difference of prefix sums over the leaves in leaf order (computed per block of leaves, so that a small node
 does not lose its digits to a large running sum).
+
+The walk here is the portable one; the compiled walks (:mod:`jaxrt._src.traversal.points`) take the same dipoles
+and sum the same terms in the same order, and run by default where they cover the structure.
 """
 
 from __future__ import annotations

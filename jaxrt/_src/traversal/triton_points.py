@@ -41,7 +41,7 @@ __all__ = ["exact_winding", "fast_winding", "nearest"]
 #: Points per program block (one warp).
 LANES = 32
 #: Most programs of a launch (they stride over the blocks): bounds the stack scratch buffer.
-MAX_PROGRAMS = 16384
+MAX_PROGRAMS = 8192
 _FOUR_PI = 12.566370614359172
 
 
