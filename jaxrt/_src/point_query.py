@@ -31,7 +31,7 @@ from jax import lax
 from jaxrt._src.instances import InstanceAccelerationStructure
 from jaxrt._src.kinds import registry
 from jaxrt._src.kinds.registry import BOUNDING_BOX
-from jaxrt._src.point_traversal import lanes_for_backend, walk_points
+from jaxrt._src.point_traversal import in_morton_order, lanes_for_backend, walk_points
 from jaxrt._src.primitives import point_triangle as geo
 from jaxrt._src.structures import PrimitiveAccelerationStructure
 from jaxrt._src.traversal import points as points_backend
@@ -202,7 +202,8 @@ def _nearest_flat(
     if backend == "cpu":
         return points_backend.cpu_nearest(points, structure, _box_table(structure), limit2)
     if backend == "gpu":
-        return points_backend.gpu_nearest(points, structure, _box_table(structure), limit2)
+        table = _box_table(structure)
+        return in_morton_order(lambda p: points_backend.gpu_nearest(p, structure, table, limit2), points)
     start, step, done = _search(structure, _box_table(structure), limit2)
     return walk_points(points, start, step, done, lambda s: s.leaf, lanes=lanes)
 

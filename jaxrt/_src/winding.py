@@ -32,7 +32,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from jaxrt._src.point_query import _box_table, check_not_empty, check_points, check_structure, closest_point, run_flat
-from jaxrt._src.point_traversal import lanes_for_backend, walk_points
+from jaxrt._src.point_traversal import in_morton_order, lanes_for_backend, walk_points
 from jaxrt._src.primitives import point_triangle as geo
 from jaxrt._src.structures import PrimitiveAccelerationStructure
 from jaxrt._src.topology import warn_if_open
@@ -174,7 +174,8 @@ def _winding_flat(
     if backend == "gpu":
         if exact:
             return points_backend.gpu_exact_winding(points, structure, table)
-        return points_backend.gpu_winding(points, structure, table, _dipoles(structure, beta))
+        dipoles = _dipoles(structure, beta)
+        return in_morton_order(lambda p: points_backend.gpu_winding(p, structure, table, dipoles), points)
     if exact:
         leaves = jnp.arange(structure.capacity)
         per_point = jax.vmap(lambda p: jnp.sum(jax.vmap(lambda k: _leaf_winding(structure, table, p, k))(leaves)))

@@ -35,6 +35,7 @@ from jax import lax
 
 from jaxrt._src.kinds import registry
 from jaxrt._src.kinds.registry import BOUNDING_BOX, TRIANGLE
+from jaxrt._src.traversal import cpu
 
 try:  # the callback that hands XLA's buffers over in place
     from jax.experimental.buffer_callback import buffer_callback as _buffer_callback
@@ -72,8 +73,6 @@ def _declines(structure: Any) -> str | None:
 
 
 def _cpu_unavailable() -> str | None:
-    from jaxrt._src.traversal import cpu
-
     return cpu.unavailable_reason()
 
 
@@ -118,8 +117,6 @@ def resolve(backend: str, structure: Any, name: str) -> str:
 
 def threads() -> int:
     """Threads of the CPU walks (the CPU traversal's count: ``JAXRT_CPU_THREADS`` or the usable cores)."""
-    from jaxrt._src.traversal import cpu
-
     return cpu.threads()
 
 
@@ -298,23 +295,13 @@ def cpu_exact_winding(points: jax.Array, structure: Any, box_table: jax.Array | 
     return _call(_exact_host, shape, args, (2, 3, 3, 1, 1))
 
 
-def _sorted(walk, points: jax.Array) -> jax.Array:
-    """``walk(points)`` with the points queued along a Morton curve (the lanes of a warp then walk similar paths)
-    and the results put back in order; non-finite points (misses) sort anywhere."""
-    from jaxrt._src.point_traversal import morton_order
-
-    finite = jnp.all(jnp.isfinite(points), axis=-1, keepdims=True)
-    order = morton_order(jnp.where(finite, points, 0))
-    out = walk(points[order])
-    return jnp.zeros_like(out).at[order].set(out)
-
-
 def gpu_nearest(points: jax.Array, structure: Any, box_table: jax.Array | None, limit2: jax.Array) -> jax.Array:
-    """:func:`cpu_nearest` by the Triton kernel (:mod:`jaxrt._src.traversal.triton_points`)."""
+    """:func:`cpu_nearest` by the Triton kernel (:mod:`jaxrt._src.traversal.triton_points`); pass the points in a
+    coherent order (:func:`jaxrt._src.point_traversal.in_morton_order`): a warp walks 32 of them together."""
     from jaxrt._src.traversal import triton_points
 
     boxes, box_leaf = box_leaves(structure, box_table)
-    return _sorted(lambda p: triton_points.nearest(p, structure, boxes, box_leaf, limit2), points)
+    return triton_points.nearest(points, structure, boxes, box_leaf, limit2)
 
 
 def gpu_winding(points: jax.Array, structure: Any, box_table: jax.Array | None, dipoles: Any) -> jax.Array:
@@ -322,7 +309,7 @@ def gpu_winding(points: jax.Array, structure: Any, box_table: jax.Array | None, 
     from jaxrt._src.traversal import triton_points
 
     boxes, box_leaf = box_leaves(structure, box_table)
-    return _sorted(lambda p: triton_points.fast_winding(p, structure, boxes, box_leaf, dipoles), points)
+    return triton_points.fast_winding(points, structure, boxes, box_leaf, dipoles)
 
 
 def gpu_exact_winding(points: jax.Array, structure: Any, box_table: jax.Array | None) -> jax.Array:

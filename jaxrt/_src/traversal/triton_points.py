@@ -28,7 +28,8 @@ import triton
 import triton.language as tl
 
 from jaxrt._src import formulas
-from jaxrt._src.structures import tree_depth_bound
+from jaxrt._src.bvh.radix_tree import tree_depth_bound
+from jaxrt._src.traversal import kernel_cache
 
 _f = formulas.instance("point_triangle", "triton")
 _closest_on_triangle = _f.closest_on_triangle
@@ -261,8 +262,6 @@ def exact_kernel(
 def _launch(kernel: str, programs: int, args: tuple, out_shape: tuple, params: dict) -> tuple[jax.Array, ...]:
     """Run kernel ``kernel`` of this module through jax-triton (outputs after the inputs)."""
     import jax_triton as jt
-
-    from jaxrt._src.traversal import kernel_cache
 
     kernel_cache.install()
     out = jt.triton_call(
