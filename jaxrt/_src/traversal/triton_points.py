@@ -16,8 +16,9 @@ lane keeps its stack in a global scratch buffer laid out ``[program, entry, lane
 so a warp's accesses to one stack level fall in one cache line. A leaf test runs only when some lane of the warp
 needs it. Points with a NaN or infinite coordinate take no step (leaf -1, winding number NaN).
 
-The kernels read the structure's own arrays (node boxes ``(M, 2, 3)``, children ``(M, 2)``, triangles
-``(C, 3, 3)``), float32.
+The kernels read the ray kernel's packed rows (:mod:`jaxrt._src.traversal.packed`): a node's two child boxes and
+children in one 64-byte row, a triangle in one 48-byte row (the structure's ``kernel_layout`` where it was
+built for the kernel, else packed per call), float32.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ import triton.language as tl
 
 from jaxrt._src import formulas
 from jaxrt._src.bvh.radix_tree import tree_depth_bound
-from jaxrt._src.traversal import kernel_cache
+from jaxrt._src.traversal import kernel_cache, packed
 
 _f = formulas.instance("point_triangle", "triton")
 _closest_on_triangle = _f.closest_on_triangle
@@ -52,18 +53,20 @@ def _finite(px, py, pz):
 
 
 @triton.jit
+def _triangle(tri_ptr, k, mask):
+    """Leaf ``k``'s vertices from its packed row (per axis: the three vertices' coordinates and a zero)."""
+    t = tri_ptr + k * 12
+    return (
+        tl.load(t + 0, mask=mask, other=0.0), tl.load(t + 4, mask=mask, other=0.0), tl.load(t + 8, mask=mask, other=0.0),
+        tl.load(t + 1, mask=mask, other=0.0), tl.load(t + 5, mask=mask, other=0.0), tl.load(t + 9, mask=mask, other=0.0),
+        tl.load(t + 2, mask=mask, other=0.0), tl.load(t + 6, mask=mask, other=0.0), tl.load(t + 10, mask=mask, other=0.0),
+    )  # fmt: skip
+
+
+@triton.jit
 def _leaf_distance(tri_ptr, box_ptr, flag_ptr, k, mask, px, py, pz, BOXES: tl.constexpr):
     """Squared distance from ``p`` to leaf ``k`` (its triangle, or its solid box where flagged) on ``mask``."""
-    t = tri_ptr + k * 9
-    ax = tl.load(t + 0, mask=mask, other=0.0)
-    ay = tl.load(t + 1, mask=mask, other=0.0)
-    az = tl.load(t + 2, mask=mask, other=0.0)
-    bx = tl.load(t + 3, mask=mask, other=0.0)
-    by = tl.load(t + 4, mask=mask, other=0.0)
-    bz = tl.load(t + 5, mask=mask, other=0.0)
-    cx = tl.load(t + 6, mask=mask, other=0.0)
-    cy = tl.load(t + 7, mask=mask, other=0.0)
-    cz = tl.load(t + 8, mask=mask, other=0.0)
+    ax, ay, az, bx, by, bz, cx, cy, cz = _triangle(tri_ptr, k, mask)
     u, v = _closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz)
     qx, qy, qz = _triangle_point(ax, ay, az, bx, by, bz, cx, cy, cz, u, v)
     dx = px - qx
@@ -85,21 +88,27 @@ def _leaf_distance(tri_ptr, box_ptr, flag_ptr, k, mask, px, py, pz, BOXES: tl.co
 
 
 @triton.jit
-def _child_box(lower_ptr, upper_ptr, node, j: tl.constexpr, mask, px, py, pz):
-    """Squared distance from ``p`` to child ``j``'s box of ``node``; NaN for an empty box."""
-    o = node * 6 + j * 3
+def _child_box(nodes_ptr, node, j: tl.constexpr, mask, px, py, pz):
+    """Squared distance from ``p`` to child ``j``'s box of ``node`` (its packed row: per axis lower0, upper0,
+    lower1, upper1); NaN for an empty box."""
+    o = nodes_ptr + node * 16 + 2 * j
     d = _squared_box_distance(
         px, py, pz,
-        tl.load(lower_ptr + o, mask=mask, other=0.0), tl.load(lower_ptr + o + 1, mask=mask, other=0.0),
-        tl.load(lower_ptr + o + 2, mask=mask, other=0.0), tl.load(upper_ptr + o, mask=mask, other=0.0),
-        tl.load(upper_ptr + o + 1, mask=mask, other=0.0), tl.load(upper_ptr + o + 2, mask=mask, other=0.0),
+        tl.load(o, mask=mask, other=0.0), tl.load(o + 4, mask=mask, other=0.0), tl.load(o + 8, mask=mask, other=0.0),
+        tl.load(o + 1, mask=mask, other=0.0), tl.load(o + 5, mask=mask, other=0.0), tl.load(o + 9, mask=mask, other=0.0),
     )  # fmt: skip
     return tl.where(d < float("inf"), d, float("nan"))
 
 
 @triton.jit
+def _child(nodes_ptr, node, j: tl.constexpr, mask):
+    """Child ``j`` of ``node`` (int32 bits in its packed row): a node ``c >= 0`` or leaf ``-1 - c``."""
+    return tl.load(nodes_ptr + node * 16 + 12 + j, mask=mask, other=0.0).to(tl.int32, bitcast=True)
+
+
+@triton.jit
 def nearest_kernel(
-    points_ptr, lower_ptr, upper_ptr, children_ptr, tri_ptr, box_ptr, flag_ptr, limit_ptr, n_points, n_programs,
+    points_ptr, nodes_ptr, tri_ptr, box_ptr, flag_ptr, limit_ptr, n_points, n_programs,
     out_ptr, stack_ptr, bound_ptr, STACK: tl.constexpr, LANES: tl.constexpr, BOXES: tl.constexpr,
 ):  # fmt: skip
     """The nearest leaf of each point (``-1``: none within the squared radius ``limit_ptr[0]``)."""
@@ -129,10 +138,10 @@ def nearest_kernel(
             bound = tl.load(bound_base + top * LANES, mask=active, other=float("inf"))
             size = tl.where(active, top, size)
             visit = active & (bound <= best)
-            d0 = _child_box(lower_ptr, upper_ptr, node, 0, visit, px, py, pz)
-            d1 = _child_box(lower_ptr, upper_ptr, node, 1, visit, px, py, pz)
-            c0 = tl.load(children_ptr + node * 2, mask=visit, other=0)
-            c1 = tl.load(children_ptr + node * 2 + 1, mask=visit, other=0)
+            d0 = _child_box(nodes_ptr, node, 0, visit, px, py, pz)
+            d1 = _child_box(nodes_ptr, node, 1, visit, px, py, pz)
+            c0 = _child(nodes_ptr, node, 0, visit)
+            c1 = _child(nodes_ptr, node, 1, visit)
             test0 = visit & (c0 < 0) & (d0 <= best)
             if tl.max(test0.to(tl.int32), axis=0) > 0:
                 d = _leaf_distance(tri_ptr, box_ptr, flag_ptr, -1 - c0, test0, px, py, pz, BOXES)
@@ -167,13 +176,8 @@ def nearest_kernel(
 @triton.jit
 def _leaf_winding(tri_ptr, box_ptr, flag_ptr, geometry_ptr, k, mask, px, py, pz, BOXES: tl.constexpr):
     """Winding number of leaf ``k`` at ``p`` on ``mask`` (0 off it and for padding)."""
-    t = tri_ptr + k * 9
-    w = _solid_angle(
-        px, py, pz,
-        tl.load(t + 0, mask=mask, other=0.0), tl.load(t + 1, mask=mask, other=0.0), tl.load(t + 2, mask=mask, other=0.0),
-        tl.load(t + 3, mask=mask, other=0.0), tl.load(t + 4, mask=mask, other=0.0), tl.load(t + 5, mask=mask, other=0.0),
-        tl.load(t + 6, mask=mask, other=0.0), tl.load(t + 7, mask=mask, other=0.0), tl.load(t + 8, mask=mask, other=0.0),
-    )  # fmt: skip
+    ax, ay, az, bx, by, bz, cx, cy, cz = _triangle(tri_ptr, k, mask)
+    w = _solid_angle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz)
     w = tl.math.div_rn(w, tl.full(w.shape, 12.566370614359172, tl.float32))
     real = mask & (tl.load(geometry_ptr + k, mask=mask, other=-1) >= 0)
     if BOXES:
@@ -188,7 +192,7 @@ def _leaf_winding(tri_ptr, box_ptr, flag_ptr, geometry_ptr, k, mask, px, py, pz,
 
 @triton.jit
 def winding_kernel(
-    points_ptr, children_ptr, tri_ptr, box_ptr, flag_ptr, geometry_ptr, normal_ptr, center_ptr, reach_ptr, n_points,
+    points_ptr, nodes_ptr, tri_ptr, box_ptr, flag_ptr, geometry_ptr, normal_ptr, center_ptr, reach_ptr, n_points,
     n_programs, out_ptr, stack_ptr, STACK: tl.constexpr, LANES: tl.constexpr, BOXES: tl.constexpr,
 ):  # fmt: skip
     """The fast winding number of each point (NaN for a point with a NaN or infinite coordinate)."""
@@ -214,7 +218,7 @@ def winding_kernel(
             size = tl.where(active, top, size)
             for j in tl.static_range(2):
                 child = node * 2 + j
-                c = tl.load(children_ptr + child, mask=active, other=0)
+                c = _child(nodes_ptr, node, j, active)
                 is_leaf = active & (c < 0)
                 if tl.max(is_leaf.to(tl.int32), axis=0) > 0:
                     w = _leaf_winding(tri_ptr, box_ptr, flag_ptr, geometry_ptr, -1 - c, is_leaf, px, py, pz, BOXES)
@@ -286,7 +290,7 @@ def _stack(triangles) -> int:
 
 
 @jax.custom_batching.sequential_vmap
-def _nearest(points, lower, upper, children, triangles, boxes, flags, limit2):
+def _nearest(points, nodes, triangles, boxes, flags, limit2):
     n = points.shape[0]
     programs, stack = _programs(n), _stack(triangles)
     shapes = (
@@ -295,17 +299,17 @@ def _nearest(points, lower, upper, children, triangles, boxes, flags, limit2):
         jax.ShapeDtypeStruct((programs * stack * LANES,), jnp.float32),
     )
     params = dict(STACK=stack, LANES=LANES, BOXES=boxes.shape[0] == triangles.shape[0])
-    args = (points, lower, upper, children, triangles, boxes, flags, limit2, n, programs)
+    args = (points, nodes, triangles, boxes, flags, limit2, n, programs)
     return _launch("nearest_kernel", programs, args, shapes, params)[0]
 
 
 @jax.custom_batching.sequential_vmap
-def _fast(points, children, triangles, boxes, flags, geometry, normal, center, reach2):
+def _fast(points, nodes, triangles, boxes, flags, geometry, normal, center, reach2):
     n = points.shape[0]
     programs, stack = _programs(n), _stack(triangles)
     shapes = (jax.ShapeDtypeStruct((n,), jnp.float32), jax.ShapeDtypeStruct((programs * stack * LANES,), jnp.int32))
     params = dict(STACK=stack, LANES=LANES, BOXES=boxes.shape[0] == triangles.shape[0])
-    args = (points, children, triangles, boxes, flags, geometry, normal, center, reach2, n, programs)
+    args = (points, nodes, triangles, boxes, flags, geometry, normal, center, reach2, n, programs)
     return _launch("winding_kernel", programs, args, shapes, params)[0]
 
 
@@ -326,24 +330,33 @@ def _i32(*arrays):
     return tuple(jax.lax.stop_gradient(a).astype(jnp.int32) for a in arrays)
 
 
+def _rows(structure) -> packed.KernelLayout:
+    """The structure's packed node and triangle rows (made at build time where the kernel runs, else here)."""
+    layout = getattr(structure, "kernel_layout", None)
+    if layout is not None:
+        return packed.KernelLayout(*(jax.lax.stop_gradient(a) for a in layout))
+    return packed.kernel_layout(structure.node_lower, structure.node_upper, structure.node_children, structure.leaf_triangle)  # fmt: skip
+
+
 def nearest(points, structure, boxes, box_leaf, limit2) -> jax.Array:
     """The nearest leaf to each point ``(n, 3)`` within squared distance ``limit2`` (-1: none)."""
-    p, lower, upper, triangles, b = _f32(points, structure.node_lower, structure.node_upper, structure.leaf_triangle, boxes)  # fmt: skip
-    (children, flags) = _i32(structure.node_children, box_leaf)
-    return _nearest(p, lower, upper, children, triangles, b, flags, _f32(jnp.reshape(limit2, (1,)))[0])
+    rows = _rows(structure)
+    p, b, limit = _f32(points, boxes, jnp.reshape(limit2, (1,)))
+    (flags,) = _i32(box_leaf)
+    return _nearest(p, rows.nodes, rows.triangles, b, flags, limit)
 
 
 def fast_winding(points, structure, boxes, box_leaf, dipoles) -> jax.Array:
     """The fast winding number of each point ``(n, 3)`` (:func:`jaxrt._src.winding._dipoles`' subtrees)."""
-    p, triangles, b, normal, center, reach2 = _f32(
-        points, structure.leaf_triangle, boxes, dipoles.normal, dipoles.center, dipoles.reach2
-    )
-    children, flags, geometry = _i32(structure.node_children, box_leaf, structure.leaf_geometry)
-    return _fast(p, children, triangles, b, flags, geometry, normal, center, reach2)
+    rows = _rows(structure)
+    p, b, normal, center, reach2 = _f32(points, boxes, dipoles.normal, dipoles.center, dipoles.reach2)
+    flags, geometry = _i32(box_leaf, structure.leaf_geometry)
+    return _fast(p, rows.nodes, rows.triangles, b, flags, geometry, normal, center, reach2)
 
 
 def exact_winding(points, structure, boxes, box_leaf) -> jax.Array:
     """The exact winding number of each point ``(n, 3)``."""
-    p, triangles, b = _f32(points, structure.leaf_triangle, boxes)
+    rows = _rows(structure)
+    p, b = _f32(points, boxes)
     flags, geometry = _i32(box_leaf, structure.leaf_geometry)
-    return _exact(p, triangles, b, flags, geometry)
+    return _exact(p, rows.triangles, b, flags, geometry)
