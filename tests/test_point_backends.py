@@ -241,3 +241,31 @@ def test_sdf_grid_equals_signed_distance_at_the_grid_points(sphere, backend, mon
         rt.sdf_grid(structure, bounds, 1)
     with pytest.raises(ValueError, match="sdf_grid: bounds must be"):
         rt.sdf_grid(structure, bounds[::-1], 4)
+
+
+@settings(max_examples=5, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1))
+def test_compiled_walk_on_random_boxes_and_triangles(seed):
+    """Random solid boxes and triangles in one structure: the CPU walk's distance against the float64 minimum
+    over every box (0 inside) and every triangle, and its winding number against boxes' 1 inside plus the
+    triangles' solid angles."""
+    if not _available("cpu"):
+        pytest.skip("no cpu walk here")
+    rng = np.random.default_rng(seed)
+    lower = rng.uniform(-1, 1, (12, 3)).astype(np.float32)
+    upper = (lower + rng.uniform(0.01, 0.5, (12, 3))).astype(np.float32)
+    triangles = (rng.uniform(-1, 1, (20, 1, 3)) + 0.3 * rng.normal(size=(20, 3, 3))).astype(np.float32)
+    geometries = [rt.BoundingBoxGeometry(lower, upper), rt.TriangleGeometry(triangles.reshape(-1, 3))]
+    structure = rt.build_primitive_structure(geometries)
+    points = rng.uniform(-1.5, 1.5, (96, 3)).astype(np.float32)
+    result = rt.closest_point(points, structure, backend="cpu")
+    p = points.astype(np.float64)[:, None]
+    gap = np.maximum(np.maximum(lower[None] - p, p - upper[None]), 0)
+    box_distance = np.linalg.norm(gap, axis=-1)  # (n, boxes)
+    reference = np.minimum(box_distance.min(axis=1), brute_closest(points, triangles)[0])
+    np.testing.assert_allclose(np.asarray(result.distance), reference, atol=1e-5)
+    portable = rt.closest_point(points, structure, backend="portable")
+    np.testing.assert_allclose(np.asarray(result.distance), np.asarray(portable.distance), atol=1e-6)
+    inside = np.all((p >= lower[None]) & (p <= upper[None]), axis=-1).sum(axis=1)
+    winding = inside + brute_winding(points, triangles)
+    np.testing.assert_allclose(np.asarray(rt.winding_number(points, structure, exact=True, backend="cpu")), winding, atol=1e-4)  # fmt: skip
