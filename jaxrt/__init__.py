@@ -36,6 +36,7 @@ from jaxrt._src.primitives.curve import CurveOptions
 from jaxrt._src.query import IntersectionQuery, intersection_query
 from jaxrt._src.ray import Ray
 from jaxrt._src.result import IntersectionResult, IntersectionType
+from jaxrt._src.sdf_grid import sdf_grid
 from jaxrt._src.sharding import device_mesh, intersect_sharded, replicate
 from jaxrt._src.sizes import StructureSizes, sah_cost, structure_sizes
 from jaxrt._src.spheres import MotionSphereGeometry, SphereGeometry
@@ -102,6 +103,7 @@ __all__ = [
     "sah_cost",
     "save",
     "shading",
+    "sdf_grid",
     "signed_distance",
     "structure_sizes",
     "tags",

@@ -13,7 +13,9 @@
 #   flat      the flat kernel of this tree against an earlier one (sphere, soup, bunny), then the GPU tests
 #   programs  the instancing bench without the flattened scene, the kernel also under several program caps
 #   features  the GPU tests of the kernel, then the normal-tag, motion and point-query tests on the GPU backend
-#   points    the point-query bench (closest point, signed distance) with Warp's mesh queries beside it
+#   points    the point-query bench (closest point, signed distance, 256^3 and 512^3 sdf_grid) on the GPU point
+#             kernels (--backend gpu) with Warp's mesh queries beside it
+#   points_tests  the point-query tests on the GPU (the kernels against the portable walks and the brute force)
 #   profile   Nsight Compute profiles (--set full) of one warm launch per SCENE:RAYS:TRACER in $PROFILES
 #             (scripts/kernel_profile.py runs the tracer; Warp tracers need the reassembled Warp), then the
 #             table of scripts/kernel_profile.py --report
@@ -77,8 +79,13 @@ case $mode in
     mkdir -p /root/wsite && tar xzf .peers/warp-py.tgz -C /root/wsite &&
       cat /root/parts/warp.so.xz.part00 .peers/warp.so.xz.part01 .peers/warp.so.xz.part02 | xz -d > /root/wsite/warp/bin/warp.so || exit 1
     export PYTHONPATH=$PYTHONPATH:/root/wsite JAXRT_DATA_DIR=$root/.data
-    step points 400 python3 -m jaxrt.bench.points --peers --scenes sphere bunny --triangles 1000000 \
-      --points 1048576 --reference-points 256 --repeats 3 --json "$out/points.json"
+    step points 540 python3 -m jaxrt.bench.points --peers --backend gpu --scenes sphere bunny --triangles 1000000 \
+      --points 1048576 --reference-points 256 --repeats 3 --grid 256 512 --json "$out/points.json"
+    ;;
+  points_tests)
+    export JAXRT_DATA_DIR=$root/.data
+    step tests_points 540 python3 -m pytest tests/test_gpu_points.py tests/test_point_backends.py \
+      tests/test_point_queries.py -q -p no:cacheprovider -rs -x --durations=5
     ;;
   profile)
     if [ -f .peers/warp-py.tgz ]; then

@@ -48,6 +48,7 @@ LAYERS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
             "point_traversal",
             "point_query",
             "winding",
+            "sdf_grid",
             "topology",
         ),
         ("math", "kinds", "traversal", "geometry", "build"),
@@ -66,6 +67,8 @@ DEFERRED = {
     ("traversal.cpu", "traversal.cpu_kernel"): "Numba",
     ("traversal.cpu", "traversal.cpu_order"): "Numba",
     ("traversal.gpu", "traversal.triton_kernel"): "Triton",
+    ("traversal.points", "traversal.cpu_points"): "Numba",
+    ("traversal.points", "traversal.triton_points"): "Triton",
     # the package instantiates its Numba operations on demand; they read the package's digest back then
     ("formulas.ops_numba", "formulas"): "Numba",
 }

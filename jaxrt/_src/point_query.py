@@ -9,6 +9,10 @@ below its box distance is dropped. The traversal picks the primitive under ``sto
 point is then computed again differentiably, so distances and points differentiate with respect to the
 points and the vertices (holding the chosen primitive fixed), as hits do in the intersector.
 
+This is the portable walk (``backend="portable"``); the compiled walks of
+:mod:`jaxrt._src.traversal.points` (Numba on the CPU, Triton on the GPU) make the same decisions and run by
+default where they cover the structure. Every walk only picks the leaf: :func:`_fields_flat` computes the result.
+
 Supported: primitive structures of the kinds with a closest-point formula (``Kind.closest_point``): triangles,
 bounding boxes (a box's distance is that of the solid box: 0 inside) and spheres (the surface). Instance
 structures and curve geometry raise ``NotImplementedError``.
@@ -28,11 +32,12 @@ from jax import lax
 from jaxrt._src.instances import InstanceAccelerationStructure
 from jaxrt._src.kinds import registry
 from jaxrt._src.kinds.registry import BOUNDING_BOX
-from jaxrt._src.point_traversal import lanes_for_backend, walk_points
+from jaxrt._src.point_traversal import in_morton_order, lanes_for_backend, walk_points
 from jaxrt._src.primitives import point_triangle as geo
 from jaxrt._src.structures import PrimitiveAccelerationStructure
+from jaxrt._src.traversal import points as points_backend
 
-__all__ = ["ClosestPointResult", "closest_point", "check_points", "check_structure", "run_flat"]
+__all__ = ["ClosestPointResult", "closest_point", "check_not_empty", "check_points", "check_structure", "run_flat"]
 
 #: Stack entries a step may drop before it visits one.
 _POPS = 4
@@ -72,6 +77,23 @@ def check_structure(structure, name: str) -> PrimitiveAccelerationStructure:
             supported = ", ".join(k.name for k in registry.KINDS if k.closest_point is not None)
             raise NotImplementedError(f"{name}: {kind.name} geometry is not supported; supported kinds: {supported}")
     return structure
+
+
+def check_not_empty(structure: PrimitiveAccelerationStructure, name: str) -> None:
+    """``ValueError`` naming ``name`` where a concrete structure holds no primitive a point query can find (every
+    triangle without area: the builder leaves such triangles out of the tree). Nothing is checked under a trace."""
+    lower, upper = structure.node_lower, structure.node_upper
+    if isinstance(lower, jax.core.Tracer) or isinstance(upper, jax.core.Tracer):
+        return
+    if lower.ndim != 3:  # a batch of structures: checked per query inside the walk (every point a miss)
+        return
+    with jax.ensure_compile_time_eval():  # the root's boxes only, also where the query is being traced
+        empty = not bool(jnp.any(lower[0] <= upper[0]))
+    if empty:
+        raise ValueError(
+            f"{name}: the structure is empty: none of its {structure.capacity} leaves holds a primitive with a "
+            "non-empty box (triangles of zero area are left out of the tree), so no point has a nearest primitive"
+        )
 
 
 def check_points(points, name: str, dtype) -> jax.Array:
@@ -188,19 +210,29 @@ def _box_table(structure: PrimitiveAccelerationStructure):
     return jnp.asarray(table)
 
 
-@functools.partial(jax.jit, static_argnames=("lanes",))
-def _nearest_flat(points: jax.Array, structure: PrimitiveAccelerationStructure, max_distance, *, lanes: int):
-    """The nearest leaf to each point ``(n, 3)`` within ``max_distance`` (-1 if none); not differentiated."""
+@functools.partial(jax.jit, static_argnames=("lanes", "backend"))
+def _nearest_flat(
+    points: jax.Array, structure: PrimitiveAccelerationStructure, max_distance, *, lanes: int, backend: str
+):
+    """The nearest leaf to each point ``(n, 3)`` within ``max_distance`` (-1 if none); not differentiated.
+    ``backend``: the walk (:func:`jaxrt._src.traversal.points.resolve`)."""
     limit = jnp.asarray(max_distance, points.dtype)
     limit2 = jnp.where(jnp.isinf(limit), jnp.inf, limit * limit)
+    if backend == "cpu":
+        return points_backend.cpu_nearest(points, structure, _box_table(structure), limit2)
+    if backend == "gpu":
+        table = _box_table(structure)
+        return in_morton_order(lambda p: points_backend.gpu_nearest(p, structure, table, limit2), points)
     start, step, done = _search(structure, _kind_tables(structure), limit2)
     return walk_points(points, start, step, done, lambda s: s.leaf, lanes=lanes)
 
 
-def _closest_point_flat(points: jax.Array, structure: PrimitiveAccelerationStructure, max_distance, *, lanes: int):
+def _closest_point_flat(
+    points: jax.Array, structure: PrimitiveAccelerationStructure, max_distance, *, lanes: int, backend: str
+):
     # The walk is compiled apart from the differentiable fields, so that gradients do not compile it again.
     detached = lax.stop_gradient
-    leaf = _nearest_flat(detached(points), detached(structure), max_distance, lanes=lanes)
+    leaf = _nearest_flat(detached(points), detached(structure), max_distance, lanes=lanes, backend=backend)
     return _fields_flat(points, structure, leaf)
 
 
@@ -259,7 +291,11 @@ def run_flat(fn, points: jax.Array, *args, **kwargs):
 
 
 def closest_point(
-    points: jax.Array, structure: PrimitiveAccelerationStructure, *, max_distance: float = math.inf
+    points: jax.Array,
+    structure: PrimitiveAccelerationStructure,
+    *,
+    max_distance: float = math.inf,
+    backend: str = "auto",
 ) -> ClosestPointResult:
     """The nearest primitive of ``structure`` to each point, and the closest point on it.
 
@@ -274,10 +310,14 @@ def closest_point(
         geometry (a box's distance is that of the solid box, 0 inside; a sphere's that of its surface).
         Instance structures and curves raise ``NotImplementedError``.
       max_distance: points farther than this from every primitive are misses.
+      backend: the walk that picks the primitive: ``"auto"`` (the compiled walk of the default JAX backend
+        where it covers the structure), ``"portable"`` (JAX), ``"cpu"`` (Numba) or ``"gpu"`` (Triton); see
+        docs/point_queries.md. Every walk picks a nearest primitive; the result fields are computed from it in
+        JAX on every walk.
 
     Returns:
       A :class:`ClosestPointResult` with the batch shape of ``points``; ties between primitives at the same
-      distance go to either.
+      distance go to either (each walk keeps the first it finds).
 
     Examples:
       >>> import jaxrt as rt
@@ -288,10 +328,13 @@ def closest_point(
     """
     name = "closest_point"
     structure = check_structure(structure, name)
+    walk = points_backend.resolve(backend, structure, name)
+    check_not_empty(structure, name)
     dtype = structure.leaf_triangle.dtype
     points = check_points(points, name, dtype)
     if not isinstance(max_distance, jax.core.Tracer):
         value = float(np.asarray(max_distance))
         if not value >= 0:
             raise ValueError(f"{name}: max_distance must be non-negative, got {max_distance}")
-    return run_flat(_closest_point_flat, points, structure, max_distance, lanes=lanes_for_backend(LANES))
+    lanes = lanes_for_backend(LANES)
+    return run_flat(_closest_point_flat, points, structure, max_distance, lanes=lanes, backend=walk)

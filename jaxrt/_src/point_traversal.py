@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-__all__ = ["morton_order", "walk_points"]
+__all__ = ["in_morton_order", "lanes_for_backend", "morton_order", "walk_points"]
 
 
 
@@ -41,6 +41,15 @@ def morton_order(points: jax.Array) -> jax.Array:
     cell = jnp.clip((points - lo) * scale, 0, 1023).astype(jnp.uint32)
     codes = (_spread(cell[:, 0]) << 2) | (_spread(cell[:, 1]) << 1) | _spread(cell[:, 2])
     return jnp.argsort(codes)
+
+
+def in_morton_order(walk: Callable[[jax.Array], jax.Array], points: jax.Array) -> jax.Array:
+    """``walk(points)`` (one result row per point) on the points sorted along a Morton curve, its results put back
+    in the given order; points with a NaN or infinite coordinate sort anywhere."""
+    finite = jnp.all(jnp.isfinite(points), axis=-1, keepdims=True)
+    order = morton_order(jnp.where(finite, points, 0))
+    out = walk(points[order])
+    return jnp.zeros_like(out).at[order].set(out)
 
 
 def _select(mask: jax.Array, new: Any, old: Any) -> Any:

@@ -16,6 +16,9 @@ radius from ``c`` to the farthest corner of the subtree's box). A closed box pri
 0). Every internal node of the LBVH covers a contiguous range of leaves, so every node's sums are a
 difference of prefix sums over the leaves in leaf order (computed per block of leaves, so that a small node
 does not lose its digits to a large running sum).
+
+The walk here is the portable one; the compiled walks (:mod:`jaxrt._src.traversal.points`) take the same dipoles
+and sum the same terms in the same order, and run by default where they cover the structure.
 """
 
 from __future__ import annotations
@@ -31,11 +34,12 @@ from jax import lax
 
 from jaxrt._src.kinds import sphere as sphere_kind
 from jaxrt._src.kinds.registry import SPHERE
-from jaxrt._src.point_query import _box_table, check_points, check_structure, closest_point, run_flat
-from jaxrt._src.point_traversal import lanes_for_backend, walk_points
+from jaxrt._src.point_query import _box_table, check_not_empty, check_points, check_structure, closest_point, run_flat
+from jaxrt._src.point_traversal import in_morton_order, lanes_for_backend, walk_points
 from jaxrt._src.primitives import point_triangle as geo
 from jaxrt._src.structures import PrimitiveAccelerationStructure
 from jaxrt._src.topology import warn_if_open
+from jaxrt._src.traversal import points as points_backend
 
 __all__ = ["winding_number", "signed_distance", "contains", "range_sums"]
 
@@ -176,11 +180,22 @@ def _fast_walk(structure: PrimitiveAccelerationStructure, box_table, dipoles: _D
     return start, step, lambda s: s.size == 0
 
 
-@functools.partial(jax.jit, static_argnames=("exact", "beta"))
-def _winding_flat(points: jax.Array, structure: PrimitiveAccelerationStructure, *, exact: bool, beta: float):
+@functools.partial(jax.jit, static_argnames=("exact", "beta", "backend"))
+def _winding_flat(
+    points: jax.Array, structure: PrimitiveAccelerationStructure, *, exact: bool, beta: float, backend: str
+):
     structure = lax.stop_gradient(structure)
     points = lax.stop_gradient(points)
     table = _box_table(structure)
+    if backend == "cpu":
+        if exact:
+            return points_backend.cpu_exact_winding(points, structure, table)
+        return points_backend.cpu_winding(points, structure, table, _dipoles(structure, beta))
+    if backend == "gpu":
+        if exact:
+            return points_backend.gpu_exact_winding(points, structure, table)
+        dipoles = _dipoles(structure, beta)
+        return in_morton_order(lambda p: points_backend.gpu_winding(p, structure, table, dipoles), points)
     if exact:
         leaves = jnp.arange(structure.capacity)
         per_point = jax.vmap(lambda p: jnp.sum(jax.vmap(lambda k: _leaf_winding(structure, table, p, k))(leaves)))
@@ -201,7 +216,12 @@ def _check_options(name: str, beta: float) -> float:
 
 
 def winding_number(
-    points: jax.Array, structure: PrimitiveAccelerationStructure, *, exact: bool = False, beta: float = 2.0
+    points: jax.Array,
+    structure: PrimitiveAccelerationStructure,
+    *,
+    exact: bool = False,
+    beta: float = 2.0,
+    backend: str = "auto",
 ) -> jax.Array:
     """The generalized winding number of the structure's surface at each point (Jacobson et al. 2013).
 
@@ -217,6 +237,8 @@ def winding_number(
         instead of the hierarchical approximation of Barill et al. 2018 (the default, much faster).
       beta: the approximation's accuracy: a subtree is replaced by its dipole when the point is farther than
         ``beta`` half diagonals from its box centre (larger: more accurate and slower).
+      backend: the walk: ``"auto"``, ``"portable"``, ``"cpu"`` or ``"gpu"``, as for
+        :func:`~jaxrt.closest_point`.
 
     Returns:
       ``float`` array of the points' batch shape.
@@ -229,18 +251,25 @@ def winding_number(
       >>> [round(float(w), 2) + 0.0 for w in rt.winding_number([[0., 0, 0], [3., 0, 0]], s)]
       [1.0, 0.0]
     """
-    return _winding(points, structure, exact, beta, "winding_number")
+    return _winding(points, structure, exact, beta, "winding_number", backend)
 
 
-def _winding(points, structure, exact: bool, beta: float, name: str) -> jax.Array:
+def _winding(points, structure, exact: bool, beta: float, name: str, backend: str) -> jax.Array:
     structure = check_structure(structure, name)
+    walk = points_backend.resolve(backend, structure, name)
+    check_not_empty(structure, name)
     beta = _check_options(name, beta)
     points = lax.stop_gradient(check_points(points, name, structure.leaf_triangle.dtype))
-    return run_flat(_winding_flat, points, lax.stop_gradient(structure), exact=bool(exact), beta=beta)
+    return run_flat(_winding_flat, points, lax.stop_gradient(structure), exact=bool(exact), beta=beta, backend=walk)
 
 
 def contains(
-    points: jax.Array, structure: PrimitiveAccelerationStructure, *, exact: bool = False, beta: float = 2.0
+    points: jax.Array,
+    structure: PrimitiveAccelerationStructure,
+    *,
+    exact: bool = False,
+    beta: float = 2.0,
+    backend: str = "auto",
 ) -> jax.Array:
     """Whether each point is inside the structure's surface: winding number ``>= 1/2`` (robust to small
     holes and self-intersections; see :func:`winding_number` for the arguments).
@@ -257,11 +286,16 @@ def contains(
       [True, False]
     """
     warn_if_open(check_structure(structure, "contains"), "contains")
-    return _winding(points, structure, exact, beta, "contains") >= 0.5
+    return _winding(points, structure, exact, beta, "contains", backend) >= 0.5
 
 
 def signed_distance(
-    points: jax.Array, structure: PrimitiveAccelerationStructure, *, exact: bool = False, beta: float = 2.0
+    points: jax.Array,
+    structure: PrimitiveAccelerationStructure,
+    *,
+    exact: bool = False,
+    beta: float = 2.0,
+    backend: str = "auto",
 ) -> jax.Array:
     """The distance from each point to the structure's nearest primitive (:func:`~jaxrt.closest_point`),
     negative inside (winding number ``>= 1/2``, :func:`winding_number`).
@@ -279,6 +313,6 @@ def signed_distance(
       [-0.577, 2.0]
     """
     warn_if_open(check_structure(structure, "signed_distance"), "signed_distance")
-    inside = _winding(points, structure, exact, beta, "signed_distance") >= 0.5
-    distance = closest_point(points, structure).distance
+    inside = _winding(points, structure, exact, beta, "signed_distance", backend) >= 0.5
+    distance = closest_point(points, structure, backend=backend).distance
     return jnp.where(inside, -distance, distance)

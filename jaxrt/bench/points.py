@@ -14,7 +14,7 @@ a Gaussian of 1% of the bounding-box diagonal; half uniform in the bounding box 
   closest point, ``mesh_query_point_sign_winding_number`` for the signed distance) when ``warp`` imports.
 
 Flags: ``--scenes``, ``--points``, ``--reference-points``, ``--repeats``, ``--data-dir``, ``--quick``,
-``--peers``, ``--json PATH``.
+``--peers``, ``--grid N [N ...]`` (dense ``rt.sdf_grid`` rows of ``N^3`` points), ``--backend`` (the walk: ``auto``, ``portable``, ``cpu``, ``gpu``), ``--json PATH``.
 """
 
 from __future__ import annotations
@@ -161,9 +161,10 @@ def _warp_peer(vertices: np.ndarray, indices: np.ndarray, points: np.ndarray, re
 
 
 def bench_points(
-    name: str, sizes: dict[str, Any], data_dir: str | None, seed: int, peers: bool = False
+    name: str, sizes: dict[str, Any], data_dir: str | None, seed: int, peers: bool = False, backend: str = "auto"
 ) -> dict[str, Any]:
-    """Speeds and errors of the point queries on one scene (see the module docstring)."""
+    """Speeds and errors of the point queries on one scene (see the module docstring); ``backend``: the walk
+    (``rt.closest_point``'s argument)."""
     scene = load_scene(name, n_triangles=sizes.get("triangles", 100_000), seed=seed, data_dir=data_dir)
     vertices, indices = scene.vertices, scene.indices
     triangles = vertices[indices]
@@ -172,30 +173,34 @@ def bench_points(
     n, repeats = len(points), sizes["repeats"]
     diagonal = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
     out: dict[str, Any] = {"scene": name, "triangles": len(indices), "points": n, "diagonal": diagonal}
+    out["backend"] = backend
+    b = backend
 
-    t_closest, closest = timed(lambda: rt.closest_point(points, structure), repeats)
-    t_signed, signed = timed(lambda: rt.signed_distance(points, structure), repeats)
-    t_wind, _ = timed(lambda: rt.winding_number(points, structure), repeats)
+    t_closest, closest = timed(lambda: rt.closest_point(points, structure, backend=b), repeats)
+    t_signed, signed = timed(lambda: rt.signed_distance(points, structure, backend=b), repeats)
+    t_wind, _ = timed(lambda: rt.winding_number(points, structure, backend=b), repeats)
     m = min(n, sizes["reference_points"])
     subset = np.concatenate([points[: m // 2], points[n // 2 : n // 2 + m - m // 2]])  # near and uniform
-    t_exact, exact = timed(lambda: rt.winding_number(subset, structure, exact=True), min(repeats, 1))
+    t_exact, exact = timed(lambda: rt.winding_number(subset, structure, exact=True, backend=b), min(repeats, 1))
     out["closest_point"] = t_closest.as_dict(n, "mpoints_s")
     out["signed_distance"] = t_signed.as_dict(n, "mpoints_s")
     out["winding_fast"] = t_wind.as_dict(n, "mpoints_s")
     out["winding_exact"] = t_exact.as_dict(m, "mpoints_s")
 
     ref, every = reference_closest(subset, triangles)
-    got = rt.closest_point(subset, structure)
+    got = rt.closest_point(subset, structure, backend=b)
     distance = np.asarray(got.distance, np.float64)
     prim = np.asarray(got.primitive_id)
     tie = 1e-6 * diagonal
     out["max_distance_error_rel"] = float(np.max(np.abs(distance - ref)) / diagonal)
     out["wrong_primitive"] = int(np.sum(every[np.arange(m), prim] > ref + tie))
     winding = reference_winding(subset, triangles)
-    fast_inside = np.asarray(rt.contains(subset, structure))
+    fast_inside = np.asarray(rt.contains(subset, structure, backend=b))
     out["sign_disagree_fast"] = int(np.sum(fast_inside != (winding >= 0.5)))
     out["sign_disagree_exact"] = int(np.sum((np.asarray(exact) >= 0.5) != (winding >= 0.5)))
-    out["max_winding_error_fast"] = float(np.max(np.abs(np.asarray(rt.winding_number(subset, structure)) - winding)))
+    out["max_winding_error_fast"] = float(
+        np.max(np.abs(np.asarray(rt.winding_number(subset, structure, backend=b)) - winding))
+    )
     out["reference_points"] = m
 
     peer = _open3d_scene(vertices, indices)
@@ -221,6 +226,19 @@ def bench_points(
             np.max(np.abs(warp["closest_values"] - np.asarray(closest.distance))) / diagonal
         )
         out["warp_sign_disagree"] = int(np.sum((warp["signed_values"] < 0) != (np.asarray(signed) < 0)))
+    lo, hi = vertices.min(0).astype(np.float64), vertices.max(0).astype(np.float64)
+    bounds = np.stack([lo - 0.1 * (hi - lo), hi + 0.1 * (hi - lo)])
+    for r in sizes.get("grids") or ():
+        t_grid, grid = timed(lambda r=r: rt.sdf_grid(structure, bounds, r, backend=b), min(repeats, 2))
+        out[f"grid_{r}"] = dict(t_grid.as_dict(r**3, "mpoints_s"), resolution=r)
+        # A sample of the grid against signed_distance at the same points.
+        rng = np.random.default_rng(seed)
+        index = rng.integers(0, r, (min(256, r**3), 3))
+        axes = [np.linspace(bounds[0, a], bounds[1, a], r) for a in range(3)]
+        sample = np.stack([axes[a][index[:, a]] for a in range(3)], axis=-1).astype(np.float32)
+        want = np.asarray(rt.signed_distance(sample, structure, backend=b))
+        got = np.asarray(grid)[index[:, 0], index[:, 1], index[:, 2]]
+        out[f"grid_{r}"]["max_diff_rel"] = float(np.max(np.abs(got - want)) / diagonal)
     return out
 
 
@@ -260,6 +278,12 @@ def format_table(results: dict[str, Any]) -> str:
                 f"Mpt/s (jaxrt {r['signed_distance']['mpoints_s']:.3f}; signs differ on "
                 f"{r['warp_sign_disagree']}/{r['points']})"
             )
+        for key in sorted(k for k in r if k.startswith("grid_")):
+            g = r[key]
+            lines.append(
+                f"{blank} {'sdf_grid ' + str(g['resolution']) + '^3':18} {g['mpoints_s']:11.3f} {'-':>12}  "
+                f"{g['median_s']:.2f} s; max |grid - signed_distance| {g['max_diff_rel']:.1e} diag (256 cells)"
+            )
     lines.extend(warp_lines)
     for name, why in results.get("skipped", {}).items():
         lines.append(f"{name}: skipped ({why})")
@@ -278,6 +302,12 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--quick", action="store_true", help="tiny sizes and one repeat: a smoke test")
     parser.add_argument("--peers", action="store_true", help="also NVIDIA Warp's mesh point queries (if installed)")
+    parser.add_argument(
+        "--grid", type=int, nargs="+", metavar="N", help="also rt.sdf_grid of N^3 points (bounds: +10%%)"
+    )
+    parser.add_argument(
+        "--backend", choices=("auto", "portable", "cpu", "gpu"), default="auto", help="the walk (default: auto)"
+    )
     parser.add_argument("--json", metavar="PATH", help="also write every number and the machine info to PATH")
     return parser
 
@@ -287,11 +317,14 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     args = _parser().parse_args(argv)
     given = {k: getattr(args, k) for k in ("points", "reference_points", "repeats", "triangles")}
     sizes = {**(_QUICK if args.quick else _DEFAULTS), **{k: v for k, v in given.items() if v is not None}}
-    results: dict[str, Any] = {"machine": machine_info(), "config": dict(sizes, seed=args.seed), "scenes": []}
+    sizes["grids"] = list(args.grid or ())
+    config = dict(sizes, seed=args.seed, backend=args.backend)
+    results: dict[str, Any] = {"machine": machine_info(), "config": config, "scenes": []}
     results["skipped"] = {}
     for name in progress(args.scenes, desc="scenes"):
         try:
-            results["scenes"].append(bench_points(name, sizes, args.data_dir, args.seed, peers=args.peers))
+            row = bench_points(name, sizes, args.data_dir, args.seed, peers=args.peers, backend=args.backend)
+            results["scenes"].append(row)
         except FileNotFoundError as error:
             results["skipped"][name] = str(error)
     print(format_table(results))

@@ -15,6 +15,7 @@ minimum = jnp.minimum
 maximum = jnp.maximum
 absolute = jnp.abs
 sqrt = jnp.sqrt
+atan2 = jnp.arctan2
 div_rn = operator.truediv
 div = operator.truediv
 

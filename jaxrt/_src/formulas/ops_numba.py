@@ -95,6 +95,11 @@ def sqrt(x):
 
 
 @numba.njit(inline="always")
+def atan2(y, x):
+    return math.atan2(y, x)
+
+
+@numba.njit(inline="always")
 def div_rn(a, b):
     return a / b
 

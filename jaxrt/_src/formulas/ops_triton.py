@@ -43,6 +43,25 @@ def sqrt(x):
 
 
 @triton.jit
+def atan2(y, x):
+    """Cephes' ``atanf`` of ``y / x`` (range reduction at tan(pi/8) and tan(3pi/8), a degree-9 odd polynomial;
+    within a few float32 ulps), moved to the quadrant of ``(x, y)``. Written with ``tl`` operations so that
+    Triton's interpreter runs it (it has no libdevice)."""
+    r = tl.math.div_rn(y, x)
+    a = tl.abs(r)
+    big = a > 2.414213562373095
+    mid = (a > 0.4142135623730950) & (big == 0)
+    t = tl.where(big, tl.math.div_rn(-tl.full(a.shape, 1.0, a.dtype), a), a)
+    t = tl.where(mid, tl.math.div_rn(a - 1.0, a + 1.0), t)
+    base = tl.where(big, 1.5707963267948966, tl.where(mid, 0.7853981633974483, 0.0))
+    z = t * t
+    poly = (((8.05374449538e-2 * z - 1.38776856032e-1) * z + 1.99777106478e-1) * z - 3.33329491539e-1) * z * t + t
+    angle = base + poly
+    angle = tl.where(r < 0, -angle, angle)
+    return tl.where(x < 0, tl.where(y < 0, angle - 3.141592653589793, angle + 3.141592653589793), angle)
+
+
+@triton.jit
 def div_rn(a, b):
     return tl.math.div_rn(a, b)
 

@@ -4,13 +4,17 @@ Reference: Ericson, *Real-Time Collision Detection* (2005), section 5.1.5. The p
 triangle (three vertices, three edges, the face) is found from six dot products; every division is guarded, so
 zero-length edges and collinear (zero-area) triangles give the closest point of their segment or vertex
 instead of a NaN. Barycentrics follow Metal: the point is ``(1 - u - v) v0 + u v1 + v v2``.
+
+Also the squared distance to a box (the walks' pruning bound and the bounding-box kind's distance) and a
+triangle's signed solid angle (Van Oosterom and Strackee, "The Solid Angle of a Plane Triangle", IEEE Trans.
+Biomed. Eng. 30(2), 1983, the ``atan2`` form), the leaf term of winding numbers.
 """
 
 from __future__ import annotations
 
-from jaxrt._src.formulas.vocabulary import div_rn, dot3, like, maximum, minimum, select
+from jaxrt._src.formulas.vocabulary import atan2, div_rn, dot3, like, maximum, minimum, select, sqrt
 
-__all__ = ["ratio", "closest_on_triangle"]
+__all__ = ["ratio", "closest_on_triangle", "triangle_point", "box_gap", "squared_box_distance", "solid_angle"]
 
 
 def ratio(num, den):
@@ -62,3 +66,36 @@ def closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
     v = select(in_c, one, v)
     v = select(in_a | in_b | in_ab, zero, v)
     return u, v
+
+
+def triangle_point(ax, ay, az, bx, by, bz, cx, cy, cz, u, v):
+    """``a + u (b - a) + v (c - a)``: the point of barycentrics ``(u, v)``."""
+    return ax + u * (bx - ax) + v * (cx - ax), ay + u * (by - ay) + v * (cy - ay), az + u * (bz - az) + v * (cz - az)
+
+
+def box_gap(p, lo, hi):
+    """How far coordinate ``p`` lies outside ``[lo, hi]`` (0 inside; ``inf`` for an empty interval)."""
+    return maximum(maximum(lo - p, p - hi), like(p, 0.0))
+
+
+def squared_box_distance(px, py, pz, lx, ly, lz, hx, hy, hz):
+    """Squared distance from ``p`` to the solid box ``[l, h]`` (``inf`` for an empty box, lower above upper)."""
+    gx, gy, gz = box_gap(px, lx, hx), box_gap(py, ly, hy), box_gap(pz, lz, hz)
+    return dot3(gx, gy, gz, gx, gy, gz)
+
+
+def solid_angle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
+    """The signed solid angle of triangle ``(a, b, c)`` seen from ``p``, positive when its counterclockwise
+    normal points away from ``p``; 0 in the triangle's plane (or for a triangle without area)."""
+    ax, ay, az = ax - px, ay - py, az - pz
+    bx, by, bz = bx - px, by - py, bz - pz
+    cx, cy, cz = cx - px, cy - py, cz - pz
+    la, lb, lc = (
+        sqrt(dot3(ax, ay, az, ax, ay, az)),
+        sqrt(dot3(bx, by, bz, bx, by, bz)),
+        sqrt(dot3(cx, cy, cz, cx, cy, cz)),
+    )
+    det = dot3(ax, ay, az, by * cz - bz * cy, bz * cx - bx * cz, bx * cy - by * cx)
+    den = la * lb * lc + dot3(ax, ay, az, bx, by, bz) * lc + dot3(ax, ay, az, cx, cy, cz) * lb
+    den = den + dot3(bx, by, bz, cx, cy, cz) * la
+    return select(det == 0, like(det, 0.0), like(det, 2.0) * atan2(det, den))

@@ -24,6 +24,7 @@ import math
 __all__ = [
     "INF",
     "absolute",
+    "atan2",
     "div",
     "div_rn",
     "dot3",
@@ -65,6 +66,12 @@ def absolute(x):
 def sqrt(x):
     """The correctly rounded square root (NaN below zero)."""
     return math.sqrt(x) if x >= 0 else math.nan
+
+
+def atan2(y, x):
+    """The angle of ``(x, y)`` in ``[-pi, pi]``: the backend's library function (XLA's and Numba's), a
+    polynomial in Triton; none is correctly rounded, so the backends may differ by a few ulps."""
+    return math.atan2(y, x)
 
 
 def div_rn(a, b):

@@ -23,10 +23,6 @@ _formula = formulas.instance("point_triangle", "jax")
 __all__ = ["closest_on_triangle", "closest_on_box", "solid_angle", "squared_box_distance"]
 
 
-def _dot(a: jax.Array, b: jax.Array) -> jax.Array:
-    return jnp.sum(a * b, axis=-1)
-
-
 def closest_on_triangle(p: jax.Array, tri: jax.Array) -> tuple[jax.Array, jax.Array]:
     """The barycentrics ``(u, v)`` of the point of triangle ``tri (3, 3)`` closest to ``p (3,)``.
 
@@ -50,16 +46,17 @@ def closest_on_box(p: jax.Array, box: jax.Array) -> jax.Array:
 
 
 def squared_box_distance(p: jax.Array, lower: jax.Array, upper: jax.Array) -> jax.Array:
-    """Squared distance from ``p (..., 3)`` to boxes ``(..., 3)``; ``inf`` for an empty box (lower > upper)."""
-    d = jnp.maximum(jnp.maximum(lower - p, p - upper), 0)
-    return _dot(d, d)
+    """Squared distance from ``p (..., 3)`` to boxes ``(..., 3)``; ``inf`` for an empty box (lower > upper).
+
+    The formula of :mod:`jaxrt._src.formulas.point_triangle` (the compiled walks' too)."""
+    p, lower, upper = jnp.broadcast_arrays(p, lower, upper)
+    return _formula.squared_box_distance(*(a[..., i] for a in (p, lower, upper) for i in range(3)))
 
 
 def solid_angle(p: jax.Array, tri: jax.Array) -> jax.Array:
     """The signed solid angle of triangle ``tri (..., 3, 3)`` seen from ``p (..., 3)`` (Van Oosterom and
-    Strackee 1983); 0 where the point is in the triangle's plane (or the triangle has no area)."""
-    a, b, c = tri[..., 0, :] - p, tri[..., 1, :] - p, tri[..., 2, :] - p
-    la, lb, lc = (jnp.sqrt(_dot(x, x)) for x in (a, b, c))
-    det = _dot(a, jnp.cross(b, c))
-    den = la * lb * lc + _dot(a, b) * lc + _dot(a, c) * lb + _dot(b, c) * la
-    return jnp.where(det == 0, 0, 2 * jnp.arctan2(det, den))
+    Strackee 1983); 0 where the point is in the triangle's plane (or the triangle has no area). The formula of
+    :mod:`jaxrt._src.formulas.point_triangle` (the compiled walks' too)."""
+    p = jnp.broadcast_to(p, tri.shape[:-2] + (3,))
+    coordinates = [p[..., i] for i in range(3)] + [tri[..., k, i] for k in range(3) for i in range(3)]
+    return _formula.solid_angle(*coordinates)
