@@ -350,14 +350,17 @@ def _build(
     count = sum(g.primitive_count for g in geometries)
     real = max(count, 2)  # leaves the LBVH links
     children, node_range, order = _lbvh(morton_codes(code_lower, code_upper, valid), real)
-    if quality == "high":
+    if quality in ("high", "sah"):
         max_depth = tree_depth_bound(capacity)  # PrimitiveAccelerationStructure.max_depth
-        children, node_range, position = restructure(lower[order], upper[order], count, children, node_range, max_depth)
+        method = "cluster" if quality == "high" else "sweep"
+        children, node_range, position = restructure(
+            lower[order], upper[order], count, children, node_range, max_depth, method
+        )
         order = order[position]
 
     def boxes_of(lower, upper):
         leaf_lower, leaf_upper = lower[order], upper[order]
-        if quality == "high":
+        if quality in ("high", "sah"):
             return _node_boxes(children, node_range, leaf_lower, leaf_upper)
         # the unused rows past the tree over the real leaves stay empty
         node_lower, node_upper = _node_boxes(
@@ -423,8 +426,9 @@ def _motion_leaves(frames: list, order: jax.Array, motion: MotionSpec | None) ->
 
 _build_jit = jax.jit(_build, static_argnums=(1, 2, 3, 4))
 
-#: Build qualities: the LBVH ("fast") and agglomerative clustering of its Morton order ("high").
-QUALITIES = ("fast", "high")
+#: Build qualities: the LBVH ("fast"), agglomerative clustering of its Morton order ("high") and the
+#: top-down full-sweep SAH tree ("sah", one pass of three sorts per tree level: slower to build).
+QUALITIES = ("fast", "high", "sah")
 
 
 def build_structure(
