@@ -210,7 +210,8 @@ def _padding_tree(count: int, node_offset: int, leaf_offset: int) -> tuple[jax.A
 
 def _sweep_layout(lower: jax.Array, upper: jax.Array, offset: int, max_depth: int):
     """The full-sweep SAH tree (:mod:`jaxrt._src.bvh.sweep_sah`) as :func:`_depth_first_layout` returns trees."""
-    children, node_range, order = sweep_sah_tree(lower, upper, jnp.ones(lower.shape[:1], bool), max_depth)
+    valid = jnp.ones(lower.shape[:1], bool)
+    children, node_range, order = sweep_sah_tree(lower, upper, valid, max_depth)
     children = jnp.where(children >= 0, children + offset, children)
     return children, node_range, order, jnp.int32(0)  # its depth is within max_depth by construction
 

@@ -4,15 +4,16 @@ Reference: Wald, "On fast Construction of SAH-based Bounding Volume Hierarchies"
 Interactive Ray Tracing 2007, section 3 (the sweep evaluation of every split position along each axis);
 MacDonald & Booth 1990 for the cost.
 
-Every node covers a contiguous range of leaf positions. One pass splits every node of a tree level at once:
-the leaves are sorted by centroid along each axis within their node (a sort keyed by the node's first
-position keeps the nodes in place), segmented prefix and suffix scans give the box and the count of valid
-leaves on each side of every split position, and each node takes its cheapest split
+Every node covers a contiguous range of leaf positions. The leaves are sorted by centroid along each axis
+once; each of the three orders keeps every node's leaves contiguous and sorted. One pass splits every node of
+a tree level at once: segmented prefix and suffix scans over each order give the box and the count of valid
+leaves on each side of every split position, each node takes its cheapest split
 ``area(left) * count(left) + area(right) * count(right)`` over all positions and axes (ties: the split
-nearest the middle, so coincident centroids and padding split evenly). Invalid leaves (padding, instances
-that do not exist) sort to the end of their node and count for nothing. The passes go on until every node
-is a single leaf, one primitive per leaf, so each pass costs three sorts of all ``C`` leaf slots and the
-number of passes is the tree's depth.
+nearest the middle, so coincident centroids and padding split evenly), and the two other orders are
+partitioned stably by the side each leaf went to (a prefix count and a scatter, no sort: the presorted sweep
+of Wald 2007, section 3.2). Invalid leaves (padding, instances that do not exist) sort to the end of every
+node and count for nothing. The passes go on until every node is a single leaf, one primitive per leaf, so
+the work is ``O(C)`` scans per tree level, the number of passes the tree's depth.
 
 Depth bound: a split is allowed only if a median split of its larger side could still end within
 ``max_depth`` (``depth + 1 + ceil(log2(larger side)) <= max_depth``); the median split always is, so the
@@ -59,12 +60,11 @@ def _segmented_boxes(start: jax.Array, lower: jax.Array, upper: jax.Array, rever
     return lo, hi
 
 
-def _split_costs(first, last, key, lower, upper, valid, centroid_axis, perm):
-    """One axis: the leaves of every node sorted by centroid, and the SAH cost of the split after each position."""
-    size = perm.shape[0]
+def _split_costs(first, last, lower, upper, valid, order):
+    """One axis: the SAH cost of the split after each position of ``order`` (leaves sorted by centroid)."""
+    size = order.shape[0]
     position = jnp.arange(size, dtype=jnp.int32)
-    _, _, perm = lax.sort((key, centroid_axis[perm], perm), num_keys=2, is_stable=True)
-    lo, hi, ok = lower[perm], upper[perm], valid[perm]
+    lo, hi, ok = lower[order], upper[order], valid[order]
     prefix_lo, prefix_hi = _segmented_boxes(position == first, lo, hi, reverse=False)
     suffix_lo, suffix_hi = _segmented_boxes(position == last, lo, hi, reverse=True)
     counted = jnp.cumsum(ok.astype(jnp.int32))
@@ -73,7 +73,21 @@ def _split_costs(first, last, key, lower, upper, valid, centroid_axis, perm):
     right = (counted[last] - before).astype(lower.dtype) - left
     after_lo, after_hi = jnp.roll(suffix_lo, -1, axis=0), jnp.roll(suffix_hi, -1, axis=0)
     cost = _area(prefix_lo, prefix_hi) * left + _area(after_lo, after_hi) * right
-    return perm, jnp.where(jnp.isnan(cost), jnp.inf, cost)
+    return jnp.where(jnp.isnan(cost), jnp.inf, cost)
+
+
+def _partition(order, goes_left, first, split, active):
+    """``order`` with every active node's leaves stably partitioned: those going left first (from ``first``),
+    the others from ``split + 1``. ``goes_left`` is indexed by slot."""
+    size = order.shape[0]
+    position = jnp.arange(size, dtype=jnp.int32)
+    left = goes_left[order].astype(jnp.int32)
+    left_before = jnp.cumsum(left) - left  # left leaves before each position, from the start of the array
+    rank_left = left_before - left_before[first]
+    rank_right = (position - first) - rank_left
+    target = jnp.where(left == 1, first + rank_left, split + 1 + rank_right)
+    target = jnp.where(active, target, position)
+    return jnp.zeros_like(order).at[target].set(order)
 
 
 def sweep_sah_tree(
@@ -99,15 +113,13 @@ def sweep_sah_tree(
     centroid = jnp.where(valid[:, None], centroid, 0.0)
     position = jnp.arange(size, dtype=jnp.int32)
     big = jnp.int32(2**31 - 1)
+    invalid = (~valid).astype(jnp.int32)
+    orders = jnp.stack([lax.sort((invalid, centroid[:, a], position), num_keys=2, is_stable=True)[2] for a in range(3)])
 
     def level(state):
-        perm, first, last, turns, depth, children, node_range = state
+        orders, first, last, turns, depth, children, node_range = state
         active = first < last
-        key = 2 * first + (~valid[perm]).astype(jnp.int32)  # nodes stay in place; invalid leaves go last
-        perms, costs = zip(
-            *(_split_costs(first, last, key, lower, upper, valid, centroid[:, a], perm) for a in range(3)), strict=True
-        )
-        perms, costs = jnp.stack(perms), jnp.stack(costs)  # (3, C)
+        costs = jnp.stack([_split_costs(first, last, lower, upper, valid, orders[a]) for a in range(3)])
         median = (first + last) // 2
         larger = jnp.maximum(position - first + 1, last - position)
         allowed = active & (position < last) & ((depth + 1 + _ceil_log2(larger) <= max_depth) | (position == median))
@@ -123,27 +135,30 @@ def sweep_sah_tree(
         code = jnp.full((size,), big).at[segment].min(code)[first]
         code = jnp.where(code == big, median, code)  # nothing finite (overflowing areas): split at the middle
         axis, split = code // size, code % size
-        perm = jnp.where(active, jnp.take_along_axis(perms, axis[None], axis=0)[0], perm)
+        # The side of every leaf, from the chosen axis's order; then every order partitioned by it.
+        chosen = jnp.take_along_axis(orders, axis[None], axis=0)[0]
+        goes_left = jnp.zeros((size,), bool).at[chosen].set(position <= split)
+        orders = jnp.stack([_partition(orders[a], goes_left, first, split, active) for a in range(3)])
         # Write each split node once, from its first position.
         node = jnp.where(active & (position == first), first + turns, size)
         left = jnp.where(split == first, -1 - first, first + turns + 1)
         right = jnp.where(split + 1 == last, -1 - last, split + 1 + turns)
         children = children.at[node].set(jnp.stack([left, right], axis=-1), mode="drop")
         node_range = node_range.at[node].set(jnp.stack([first, last], axis=-1), mode="drop")
-        goes_left = active & (position <= split)
-        goes_right = active & (position > split)
+        to_left = active & (position <= split)
+        to_right = active & (position > split)
         return (
-            perm,
-            jnp.where(goes_right, split + 1, first),
-            jnp.where(goes_left, split, last),
-            turns + goes_left.astype(jnp.int32),
+            orders,
+            jnp.where(to_right, split + 1, first),
+            jnp.where(to_left, split, last),
+            turns + to_left.astype(jnp.int32),
             depth + 1,
             children,
             node_range,
         )
 
     state = (
-        position,
+        orders,
         jnp.zeros((size,), jnp.int32),
         jnp.full((size,), size - 1, jnp.int32),
         jnp.zeros((size,), jnp.int32),
@@ -152,4 +167,4 @@ def sweep_sah_tree(
         jnp.zeros((size - 1, 2), jnp.int32),
     )
     state = lax.while_loop(lambda s: jnp.any(s[1] < s[2]), level, state)
-    return state[5], state[6], state[0]
+    return state[5], state[6], state[0][0]
