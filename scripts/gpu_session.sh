@@ -12,8 +12,8 @@
 #   instanced the instanced-kernel tests and the instancing bench (kernel and portable paths, batched scenes)
 #   flat      the flat kernel of this tree against an earlier one (sphere, soup, bunny), then the GPU tests
 #   programs  the instancing bench without the flattened scene, the kernel also under several program caps
-#   tree      tree quality: the GPU bench on sphere, bunny, dragon, Sponza, Sibenik with both triangle build
-#             qualities (Warp beside them when its parts are here, as for "peers"), and the instancing bench
+#   tree      tree quality: the GPU bench on sphere, Sponza, bunny, Sibenik, dragon with the three triangle
+#             build qualities (Warp beside them when its parts are here, as for "peers"), and the instancing bench
 #             with the SAH and the LBVH instance trees (JSON: bench_tree.json, instancing_tree.json)
 #   features  the GPU tests of the kernel, then the normal-tag, motion and point-query tests on the GPU backend
 #   points    the point-query bench (closest point, signed distance) with Warp's mesh queries beside it
@@ -71,7 +71,7 @@ case $mode in
       --scenes bunny,dragon,sponza,sibenik,bunny-1M,dragon-1M --json "$out/bench_meshes.json" 2>&1 | tee "$out/bench_meshes.log"
     ;;
   tree)
-    # Tree quality: both triangle build qualities (trace rows, build ms at 1M triangles, SAH cost) with Warp
+    # Tree quality: the triangle build qualities (trace rows, build ms at 1M triangles, SAH cost) with Warp
     # beside them, then the island with the SAH and the LBVH instance trees. Under 8 minutes.
     peers=""
     if [ -f /root/parts/warp.so.xz.part00 ] && [ -f .peers/warp.so.xz.part01 ]; then
@@ -79,9 +79,9 @@ case $mode in
         cat /root/parts/warp.so.xz.part00 .peers/warp.so.xz.part01 .peers/warp.so.xz.part02 | xz -d > /root/wsite/warp/bin/warp.so &&
         export PYTHONPATH=$PYTHONPATH:/root/wsite && peers=--peers
     fi
-    step bench_tree 290 python3 -m jaxrt.bench.gpu $peers --repeats 5 --portable-rays 0 --meshes .meshes \
-      --scenes sphere,bunny,dragon,sponza,sibenik --quality fast,high --json "$out/bench_tree.json"
-    step instancing_tree 170 python3 -m jaxrt.bench.instancing --repeats 3 --scenes 64 --instance-quality high,fast \
+    step bench_tree 300 python3 -m jaxrt.bench.gpu $peers --repeats 5 --portable-rays 0 --meshes .meshes \
+      --scenes sphere,sponza,bunny,sibenik,dragon --quality fast,high,sah --json "$out/bench_tree.json"
+    step instancing_tree 160 python3 -m jaxrt.bench.instancing --repeats 3 --scenes 64 --instance-quality high,fast \
       --json "$out/instancing_tree.json"
     ;;
   features)

@@ -57,7 +57,8 @@ and the static :class:`GeometryInfo` of that geometry. Internal node 0 is the ro
 primitive. Leaves past the primitive count are padding: their boxes are empty, so no ray enters them and they
 never show in results. The LBVH (``quality="fast"``) links only the real leaves (at least two), in internal
 nodes ``0 .. n - 2``; the rows past them are unused (empty boxes, children pointing at a padding leaf). The
-clustering tree hangs the padding leaves under the root in a subtree of their own.
+clustering tree (``"high"``) and the SAH tree (``"sah"``) hang the padding leaves under the root in a subtree of
+their own.
 """
 
 from __future__ import annotations
