@@ -12,6 +12,9 @@
 #   instanced the instanced-kernel tests and the instancing bench (kernel and portable paths, batched scenes)
 #   flat      the flat kernel of this tree against an earlier one (sphere, soup, bunny), then the GPU tests
 #   programs  the instancing bench without the flattened scene, the kernel also under several program caps
+#   tree      tree quality: the GPU bench on sphere, Sponza, bunny, Sibenik, dragon with the three triangle
+#             build qualities (Warp beside them when its parts are here, as for "peers"), and the instancing bench
+#             with the SAH and the LBVH instance trees (JSON: bench_tree.json, instancing_tree.json)
 #   features  the GPU tests of the kernel, then the normal-tag, motion and point-query tests on the GPU backend
 #   points    the point-query bench (closest point, signed distance, 256^3 and 512^3 sdf_grid) on the GPU point
 #             kernels (--backend gpu) with Warp's mesh queries beside it
@@ -68,6 +71,20 @@ case $mode in
     timeout 220 python3 -m jaxrt.bench.gpu --peers --repeats 5 --json "$out/bench_peers.json" 2>&1 | tee "$out/bench_peers.log"
     timeout 300 python3 -m jaxrt.bench.gpu --peers --repeats 5 --portable-rays 0 --meshes .meshes \
       --scenes bunny,dragon,sponza,sibenik,bunny-1M,dragon-1M --json "$out/bench_meshes.json" 2>&1 | tee "$out/bench_meshes.log"
+    ;;
+  tree)
+    # Tree quality: the triangle build qualities (trace rows, build ms at 1M triangles, SAH cost) with Warp
+    # beside them, then the island with the SAH and the LBVH instance trees. Under 8 minutes.
+    peers=""
+    if [ -f /root/parts/warp.so.xz.part00 ] && [ -f .peers/warp.so.xz.part01 ]; then
+      mkdir -p /root/wsite && tar xzf .peers/warp-py.tgz -C /root/wsite &&
+        cat /root/parts/warp.so.xz.part00 .peers/warp.so.xz.part01 .peers/warp.so.xz.part02 | xz -d > /root/wsite/warp/bin/warp.so &&
+        export PYTHONPATH=$PYTHONPATH:/root/wsite && peers=--peers
+    fi
+    step bench_tree 300 python3 -m jaxrt.bench.gpu $peers --repeats 5 --portable-rays 0 --meshes .meshes \
+      --scenes sphere,sponza,bunny,sibenik,dragon --quality fast,high,sah --json "$out/bench_tree.json"
+    step instancing_tree 160 python3 -m jaxrt.bench.instancing --repeats 3 --scenes 64 --instance-quality high,fast \
+      --json "$out/instancing_tree.json"
     ;;
   features)
     step tests_gpu 330 python3 -m pytest tests/test_gpu.py tests/test_gpu_instanced.py -q -p no:cacheprovider -rs \

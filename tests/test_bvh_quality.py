@@ -1,4 +1,5 @@
-"""The high-quality build (agglomerative clustering, ``quality="high"``): valid layout, same hits, lower SAH cost."""
+"""The high-quality builds (agglomerative clustering, ``quality="high"``; the full-sweep SAH tree, ``"sah"``):
+valid layout, same hits, lower SAH cost."""
 
 from __future__ import annotations
 
@@ -38,18 +39,20 @@ def _bumpy_grid(nx: int = 8, ny: int = 4, seed: int = 0) -> np.ndarray:
     return p[faces].astype(np.float32)
 
 
+@pytest.mark.parametrize("quality", ["high", "sah"])
 @pytest.mark.parametrize("count", [1, 3, 100])
-def test_high_quality_tree_is_valid(count):
+def test_high_quality_tree_is_valid(count, quality):
     """Every leaf and node reachable once, contiguous ranges, exact boxes, depth within the stack bound
     (1: no clustering; 3: one padding leaf; 100: a padding subtree; the grid below has no padding)."""
     triangles = np.random.default_rng(count).normal(size=(count, 3, 3)).astype(np.float32)
-    structure = rt.build_primitive_structure(rt.TriangleGeometry(triangles.reshape(-1, 3)), quality="high")
+    structure = rt.build_primitive_structure(rt.TriangleGeometry(triangles.reshape(-1, 3)), quality=quality)
     assert_valid_tree(structure, triangles, (count,))
 
 
-def test_high_quality_traces_like_brute_force_and_the_fast_tree():
+@pytest.mark.parametrize("quality", ["high", "sah"])
+def test_high_quality_traces_like_brute_force_and_the_fast_tree(quality):
     scene = random_scene(3, 4.0, 0.0)  # three geometries, far from the origin
-    high = rt.build_primitive_structure(scene.geometries, quality="high")
+    high = rt.build_primitive_structure(scene.geometries, quality=quality)
     fast = rt.build_primitive_structure(scene.geometries)
     assert_valid_tree(high, scene.triangles, scene.counts)
     assert not np.array_equal(np.asarray(high.node_children), np.asarray(fast.node_children))
@@ -68,10 +71,11 @@ def test_high_quality_traces_like_brute_force_and_the_fast_tree():
         assert abs(ref.distance[r, ka[r]] - ref.distance[r, kb[r]]) <= ref.tolerance[r, ka[r]] + ref.tolerance[r, kb[r]]
 
 
-def test_high_quality_lowers_the_sah_cost_and_refits():
+@pytest.mark.parametrize("quality", ["high", "sah"])
+def test_high_quality_lowers_the_sah_cost_and_refits(quality):
     triangles = _bumpy_grid()
     geometry = rt.TriangleGeometry(triangles.reshape(-1, 3))
-    high = rt.build_primitive_structure(geometry, quality="high")
+    high = rt.build_primitive_structure(geometry, quality=quality)
     fast = rt.build_primitive_structure(geometry)
     assert high.capacity == len(triangles) == 64  # no padding leaves
     assert_valid_tree(high, triangles, (64,))

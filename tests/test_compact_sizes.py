@@ -115,14 +115,14 @@ def reachable_leaves(children: np.ndarray) -> list[int]:
     return leaves
 
 
-@pytest.mark.parametrize("quality", ["fast", "high"])
+@pytest.mark.parametrize("quality", ["fast", "high", "sah"])
 @pytest.mark.parametrize("count", [1, 3, 17])
 def test_compact_capacity_and_small_trees(count, quality):
     """The kept rows are the original's (the root's padding child excepted); every real leaf is reached once."""
     structure = triangle_case(count, seed=count, quality=quality).structure
     compacted = rt.compact(structure)
     padded = structure.capacity > max(count, 2)
-    clustered = quality == "high" and padded
+    clustered = quality in ("high", "sah") and padded
     expected = count + 1 if clustered else max(count, 2)
     assert compacted.capacity == expected
     assert compacted.node_children.shape == (expected - 1, 2)

@@ -28,6 +28,7 @@ import jaxrt as rt
 KINDS = {
     "triangles": lambda: triangle_case(100).structure,
     "triangles-high": lambda: triangle_case(100, quality="high").structure,
+    "triangles-sah": lambda: triangle_case(100, quality="sah").structure,
     "curves": lambda: curve_case().structure,
     "boxes-with-data": lambda: box_case().structure,
     "instances": lambda: instance_case().structure,

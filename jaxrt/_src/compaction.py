@@ -6,7 +6,8 @@ reads. :func:`compact` returns the same tree in the smallest layout that holds i
 
 - the LBVH (``quality="fast"``) links only the real leaves ``0 .. n - 1`` (at least two), in internal nodes
   ``0 .. n - 2``; the rows past them are dropped, so the capacity becomes ``max(n, 2)``;
-- the clustering tree (``quality="high"``) hangs the padding leaves under the root in a subtree of their own:
+- the clustering tree (``quality="high"``) and the SAH tree (``"sah"``) hang the padding leaves under the root
+  in a subtree of their own:
   node 0 joins the real tree (nodes ``1 .. n - 1``) and the padding subtree. The padding subtree is replaced by
   one padding leaf ``n`` (an empty box, as before), so the capacity becomes ``n + 1``.
 
@@ -16,7 +17,7 @@ power of two, so the first trace of a compacted structure compiles a traversal f
 than reusing the one of its bucket.
 
 Instance structures: their primitive structures are compacted; their own instance tables are kept as they
-are (the instance LBVH links its padding leaves into the tree, and an instance table is small next to the
+are (an instance tree links its padding leaves into the tree, and an instance table is small next to the
 geometry below it). The root boxes the tables were built from do not change, since node 0 is kept as is.
 """
 

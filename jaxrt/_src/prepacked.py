@@ -87,7 +87,9 @@ def build_primitive_structure(
       quality: ``"fast"`` (the LBVH) or ``"high"`` (the LBVH restructured by agglomerative clustering, PLOC,
         :mod:`jaxrt._src.bvh.ploc`): a lower SAH cost at 3 to 10 times the build time; faster to trace where
         triangle sizes vary a lot (building interiors), about as fast on evenly tessellated meshes
-        (docs/performance.md). Same node layout either way.
+        (docs/performance.md); or ``"sah"``: a top-down SAH tree that sweeps every split position on each
+        axis (:mod:`jaxrt._src.bvh.sweep_sah`; one pass of three sorts per tree level, so it builds slower
+        still, for static scenes traced many times). Same node layout in every case.
       checks: also check traced inputs (non-finite coordinates, negative radii, inverted boxes, indices out
         of range), which constructors check only when concrete: a :class:`~jaxrt._src.checks.BuildCheckError`
         (inside ``jit``, a ``jax.errors.JaxRuntimeError`` carrying its message, which

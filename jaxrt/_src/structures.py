@@ -57,7 +57,8 @@ and the static :class:`GeometryInfo` of that geometry. Internal node 0 is the ro
 primitive. Leaves past the primitive count are padding: their boxes are empty, so no ray enters them and they
 never show in results. The LBVH (``quality="fast"``) links only the real leaves (at least two), in internal
 nodes ``0 .. n - 2``; the rows past them are unused (empty boxes, children pointing at a padding leaf). The
-clustering tree hangs the padding leaves under the root in a subtree of their own.
+clustering tree (``"high"``) and the SAH tree (``"sah"``) hang the padding leaves under the root in a subtree of
+their own.
 """
 
 from __future__ import annotations
@@ -379,14 +380,17 @@ def _build(
     count = sum(g.primitive_count for g in geometries)
     real = max(count, 2)  # leaves the LBVH links
     children, node_range, order = _lbvh(morton_codes(code_lower, code_upper, valid), real)
-    if quality == "high":
+    if quality in ("high", "sah"):
         max_depth = tree_depth_bound(capacity)  # PrimitiveAccelerationStructure.max_depth
-        children, node_range, position = restructure(lower[order], upper[order], count, children, node_range, max_depth)
+        method = "cluster" if quality == "high" else "sweep"
+        children, node_range, position = restructure(
+            lower[order], upper[order], count, children, node_range, max_depth, method
+        )
         order = order[position]
 
     def boxes_of(lower, upper):
         leaf_lower, leaf_upper = lower[order], upper[order]
-        if quality == "high":
+        if quality in ("high", "sah"):
             return _node_boxes(children, node_range, leaf_lower, leaf_upper)
         # the unused rows past the tree over the real leaves stay empty
         node_lower, node_upper = _node_boxes(
@@ -454,8 +458,9 @@ def _motion_leaves(frames: list, order: jax.Array, motion: MotionSpec | None) ->
 
 _build_jit = jax.jit(_build, static_argnums=(1, 2, 3, 4))
 
-#: Build qualities: the LBVH ("fast") and agglomerative clustering of its Morton order ("high").
-QUALITIES = ("fast", "high")
+#: Build qualities: the LBVH ("fast"), agglomerative clustering of its Morton order ("high") and the
+#: top-down full-sweep SAH tree ("sah", one pass of three sorts per tree level: slower to build).
+QUALITIES = ("fast", "high", "sah")
 
 
 def build_structure(

@@ -23,7 +23,7 @@ the kernel over many small random forests, each traced by its own depth camera (
 
 Flags: ``--quick`` (small sizes, one repeat), ``--json PATH``, ``--repeats``, ``--rays``, ``--trees``,
 ``--leaves``, ``--terrain``, ``--scenes`` (batched scenes), ``--max-flat`` (skip the flattened build above this
-many triangles). Only jax and numpy are needed.
+many triangles), ``--instance-quality high,fast`` (also build the instance levels with the LBVH over instances). Only jax and numpy are needed.
 """
 
 from __future__ import annotations
@@ -208,30 +208,35 @@ def _instances(index, transforms):
     return rt.Instances(np.asarray(index, np.int32), np.asarray(transforms, np.float32))
 
 
-def _build_two_levels(scene, meshes):
+def _build_two_levels(scene, meshes, quality: str = "high"):
     ground, trunk, leaf = meshes
     eye = np.eye(3, 4, dtype=np.float32)[None]
     tree = rt.build_instance_structure(
         [trunk, leaf],
         _instances([0] + [1] * len(scene["leaf_transforms"]), np.concatenate([eye, scene["leaf_transforms"]])),
+        quality=quality,
     )
     trees = scene["tree_world"]
-    return rt.build_instance_structure([ground, tree], _instances([0] + [1] * len(trees), np.concatenate([eye, trees])))
+    return rt.build_instance_structure(
+        [ground, tree], _instances([0] + [1] * len(trees), np.concatenate([eye, trees])), quality=quality
+    )
 
 
-def _build_three_levels(scene, meshes):
+def _build_three_levels(scene, meshes, quality: str = "high"):
     ground, trunk, leaf = meshes
     eye = np.eye(3, 4, dtype=np.float32)[None]
     tree = rt.build_instance_structure(
         [trunk, leaf],
         _instances([0] + [1] * len(scene["leaf_transforms"]), np.concatenate([eye, scene["leaf_transforms"]])),
+        quality=quality,
     )
     groves = [
-        rt.build_instance_structure([tree], _instances(np.zeros(len(v), np.int32), v)) for v in scene["grove_trees"]
+        rt.build_instance_structure([tree], _instances(np.zeros(len(v), np.int32), v), quality=quality)
+        for v in scene["grove_trees"]
     ]
     index = np.concatenate([[0], 1 + scene["grove_index"]])
     return rt.build_instance_structure(
-        [ground, *groves], _instances(index, np.concatenate([eye, scene["grove_transforms"]]))
+        [ground, *groves], _instances(index, np.concatenate([eye, scene["grove_transforms"]])), quality=quality
     )
 
 
@@ -447,6 +452,11 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--scenes", type=int, help=f"batched scenes (default {_DEFAULTS['scenes']})")
     parser.add_argument("--max-flat", type=int, help="skip the flattened structure above this many triangles")
     parser.add_argument(
+        "--instance-quality",
+        default="high",
+        help="instance tree qualities to build, comma-separated (high: SAH, fast: LBVH); the first is unsuffixed",
+    )
+    parser.add_argument(
         "--programs", help="also time the kernel with these caps on programs per launch (e.g. 4096,8192)"
     )
     return parser
@@ -496,10 +506,12 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     def build_meshes():
         return tuple(_mesh(scene[k]) for k in ("terrain", "trunk", "leaf"))
 
-    builders = {
-        "2 levels": (lambda: _build_two_levels(scene, build_meshes()), 2),
-        "3 levels": (lambda: _build_three_levels(scene, build_meshes()), 3),
-    }
+    qualities = args.instance_quality.split(",")
+    builders = {}
+    for quality in qualities:
+        suffix = "" if quality == qualities[0] else f" ({quality} instance trees)"
+        builders[f"2 levels{suffix}"] = (lambda q=quality: _build_two_levels(scene, build_meshes(), q), 2)
+        builders[f"3 levels{suffix}"] = (lambda q=quality: _build_three_levels(scene, build_meshes(), q), 3)
     flat = reference = None
     kernel = kernel_tracer()
     kernel_fn = None if kernel is None else jax.jit(kernel)
@@ -597,7 +609,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             counts = [int(p) for p in args.programs.split(",")]
             batched["kernel"]["program_sweep"] = program_sweep(kernel, built, rays, (batch, camera), counts, repeats)
 
-    config = dict(sizes, rays=n_rays, quick=bool(args.quick))
+    config = dict(sizes, rays=n_rays, quick=bool(args.quick), instance_quality=qualities)
     out = {"machine": machine, "config": config, "scene": info, "results": results, "batched": batched}
     out["wall_s"] = time.perf_counter() - start
     _print(out)

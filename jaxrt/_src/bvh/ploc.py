@@ -32,6 +32,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from jaxrt._src.bvh.radix_tree import build_radix_tree
+from jaxrt._src.bvh.sweep_sah import sweep_sah_tree
 
 __all__ = ["RADIUS", "cluster_tree", "restructure", "path_sums", "parent_nodes"]
 
@@ -207,10 +208,25 @@ def _padding_tree(count: int, node_offset: int, leaf_offset: int) -> tuple[jax.A
     return children, jnp.stack([first, last], axis=-1) + leaf_offset
 
 
+def _sweep_layout(lower: jax.Array, upper: jax.Array, offset: int, max_depth: int):
+    """The full-sweep SAH tree (:mod:`jaxrt._src.bvh.sweep_sah`) as :func:`_depth_first_layout` returns trees."""
+    valid = jnp.ones(lower.shape[:1], bool)
+    children, node_range, order = sweep_sah_tree(lower, upper, valid, max_depth)
+    children = jnp.where(children >= 0, children + offset, children)
+    return children, node_range, order, jnp.int32(0)  # its depth is within max_depth by construction
+
+
 def restructure(
-    lower: jax.Array, upper: jax.Array, count: int, radix_children: jax.Array, radix_range: jax.Array, max_depth: int
+    lower: jax.Array,
+    upper: jax.Array,
+    count: int,
+    radix_children: jax.Array,
+    radix_range: jax.Array,
+    max_depth: int,
+    method: str = "cluster",
 ) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """The clustering tree over the first ``count`` leaves in the structure's node layout.
+    """The clustering tree (or, with ``method="sweep"``, the full-sweep SAH tree) over the first ``count``
+    leaves in the structure's node layout.
 
     Args:
       lower, upper: ``(C, 3)`` leaf boxes in Morton order; leaves ``count..C-1`` are padding.
@@ -218,6 +234,7 @@ def restructure(
       radix_children, radix_range: the radix tree over the same leaves, kept where the clustering tree is
         deeper than ``max_depth``.
       max_depth: the deepest internal node the traversal stacks allow (the root's depth is 1).
+      method: ``"cluster"`` (PLOC) or ``"sweep"`` (top-down SAH, built within the depth bound).
 
     Returns:
       ``(children, node_range, order)``: the node arrays, and ``order[k]``, the Morton position of the leaf
@@ -227,7 +244,11 @@ def restructure(
     padding = capacity - count
     lower, upper = lax.stop_gradient(lower), lax.stop_gradient(upper)
     offset = 1 if padding else 0  # with padding, node 0 joins the real tree and the padding tree
-    if count >= 2:
+    if count >= 2 and method == "sweep":
+        # Leaves within max_depth (one level less below the root that also holds the padding subtree).
+        children, node_range, order, depth = _sweep_layout(lower[:count], upper[:count], offset, max_depth - offset)
+        real_root = jnp.int32(offset)
+    elif count >= 2:
         children, node_range, order, depth = _depth_first_layout(*cluster_tree(lower[:count], upper[:count]), offset)
         real_root = jnp.int32(offset)
     else:
