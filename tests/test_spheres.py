@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 from test_gpu_instanced import INTERPRETED, ON_GPU, kernel_launches_here, run_kernel_tests_in_interpreter
 
 import jaxrt as rt
-from jaxrt._src.traversal import gpu
+from jaxrt._src.traversal import cpu, gpu
 
 RAYS = 256
 CAPACITY = 64
@@ -91,6 +91,12 @@ def scene(seed: int, count: int = 40, spread: float = 4.0, inside: bool = True):
     t_min[200:230] = rng.uniform(0.0, 0.8, 30)
     t_max[230:] = rng.uniform(0.3, 1.0, RAYS - 230)
     return centers, radii, origin, direction, t_min, t_max
+
+
+def skip_unless_runs(backend: str) -> None:
+    """Skip the test when ``backend`` is the CPU traversal and it cannot run here (e.g. on a GPU machine)."""
+    if backend == "cpu" and cpu.unavailable_reason() is not None:
+        pytest.skip(cpu.unavailable_reason())
 
 
 def trace(intersector, structure, origin, direction, t_min, t_max, time=None):
@@ -230,6 +236,7 @@ def test_far_small_and_large_spheres(backend):
     sphere, aimed at its centre or across it. Non-grazing hits have a relative distance error of at most 1e-6
     against float64 on the same float32 inputs, and no ray whose line passes within half a radius of the
     centre misses."""
+    skip_unless_runs(backend)
     rng = np.random.default_rng(7)
     n = RAYS // 4
     direction_of = rng.normal(size=(n, 3))
@@ -461,6 +468,7 @@ def _compare(got, want, ambiguous, fields=("type", "primitive_id", "geometry_id"
 
 @pytest.mark.parametrize("case", sorted(BACKEND_CASES))
 def test_cpu_traversal_matches_portable(random_scene, case):
+    skip_unless_runs("cpu")
     structure, (centers, radii, origin, direction, t_min, t_max), ref = random_scene
     tags = (rt.tags.normal, rt.tags.sphere_data)
     options = BACKEND_CASES[case]
@@ -470,6 +478,7 @@ def test_cpu_traversal_matches_portable(random_scene, case):
 
 
 def test_cpu_traversal_instanced_matches_portable(random_scene):
+    skip_unless_runs("cpu")
     structure, (centers, radii, origin, direction, t_min, t_max), ref = random_scene
     transform = np.array([[0.0, -1.2, 0, 0.5], [1.2, 0, 0, -1], [0, 0, 1.2, 2]], np.float32)
     scene_structure = rt.build_instance_structure([structure], rt.Instances([0], transform[None]))
@@ -603,6 +612,7 @@ def test_refit_save_load_compact_and_vmap(tmp_path):
 @pytest.mark.parametrize("backend", ["portable", "cpu"])
 def test_ray_masks_select_instances_of_spheres(backend):
     """Two instances of one sphere structure with masks 1 and 2: each ray sees the instances its mask names."""
+    skip_unless_runs(backend)
     inner = rt.build_primitive_structure(rt.SphereGeometry([[0.0, 0.0, 0.0]], 1.0))
     transforms = np.stack([np.eye(3, 4), np.eye(3, 4)]).astype(np.float32)
     transforms[1, :, 3] = [0.0, 0.0, -4.0]  # behind the first
