@@ -489,6 +489,44 @@ def test_cpu_traversal_instanced_matches_portable(random_scene):
     _compare(got, want, np.zeros(RAYS, bool))
 
 
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_cpu_lean_loop_with_triangles(dtype, monkeypatch):
+    """Spheres beside triangles in one structure take the CPU traversal's lean loop (``trace_flat``): nearest
+    and any hit with back-face culling (triangles only), bit for bit the general loop's leaves, distances and
+    stats counters (the same compiled sphere test), and the portable path's hits, in float32 and float64."""
+    skip_unless_runs("cpu")
+    from jaxrt._src import pipeline
+    from jaxrt._src.traversal import cpu_kernel
+
+    calls = []
+    lean = cpu_kernel.trace_flat
+    monkeypatch.setattr(cpu_kernel, "trace_flat", lambda *a: (calls.append(a[-2]), lean(*a))[1])
+    centers, radii, origin, direction, t_min, t_max = scene(4, count=24)
+    ground = np.array([[-9, -9, -1.5], [9, -9, -1.5], [0, 9, -1.5], [-9, 9, 1.0], [0, -9, 1.0], [9, 9, 1.0]])
+    ambiguous = reference(origin, direction, t_min, t_max, centers, radii)[4]
+    with jax.enable_x64(dtype == "float64"):
+        cast = lambda a: jnp.asarray(a, dtype)  # noqa: E731
+        geometries = [rt.SphereGeometry(cast(centers), cast(radii)), rt.TriangleGeometry(cast(ground))]
+        structure = rt.build_primitive_structure(geometries, capacity=CAPACITY)
+        assert structure.leaf_triangle.dtype == dtype
+        ray = rt.Ray(*(cast(a) for a in (origin, direction, t_min, t_max)))
+        tags = (rt.tags.normal, rt.tags.sphere_data)
+        for options in ({}, {"accept_any_intersection": True, "triangle_cull_mode": "back"}):
+            intersector, portable = (rt.Intersector(*tags, backend=b, **options) for b in ("cpu", "portable"))
+            params, arrays = pipeline.cpu_kernel_arguments(structure, ray, intersector)
+            assert params[9] == cpu._SPHERES
+            count = len(calls)
+            lean_out = cpu._run(params, arrays)
+            general_out = cpu._run((*params[:9], 1, *params[10:]), arrays)  # analytic code 1: the general loop
+            assert len(calls) == count + 1
+            for name, a, b in zip(("distance", "leaf", "chain", "visited", "tested", "overflow"), lean_out, general_out, strict=True):  # fmt: skip
+                np.testing.assert_array_equal(a, b, err_msg=name)
+            got, want = (jax.tree_util.tree_map(np.asarray, dict(i.intersect(ray, structure))) for i in (intersector, portable))  # fmt: skip
+            assert np.sum(want["type"] == 4) > 50 and np.sum(want["type"] == 1) > 10
+            _compare(got, want, np.zeros(RAYS, bool) if options else ambiguous)
+    assert calls and all(calls)  # the lean loop traced them, with its sphere test
+
+
 kernel_here = pytest.fixture(kernel_launches_here, name="kernel_here")
 kernel_test = pytest.mark.skipif(not (INTERPRETED or ON_GPU), reason="runs in the interpreter process or on a GPU")
 
