@@ -12,9 +12,9 @@ an incoherent order is traced sorted along a Morton curve of origin and directio
 The intersector picks this path (``backend="auto"`` or ``"cpu"``) when :func:`unavailable_reason` returns
 ``None`` (the default JAX backend is the CPU and Numba imports) and
 :func:`jaxrt._src.pipeline.kernel_declines` finds the scene and intersector covered: triangles, flat or
-instanced at any depth, bounding boxes with the built-in sphere, disk and capped cylinder functions (their
-distances equal the portable path's to rounding: XLA contracts some of their multiply-adds, the loop none),
-primitive keyframe motion of triangles in a primitive structure (node boxes and triangles blended at each
+instanced at any depth, built-in spheres, bounding boxes with the built-in sphere, disk and capped cylinder
+functions (their distances equal the portable path's to rounding: XLA contracts some of their multiply-adds,
+the loop none), primitive keyframe motion of triangles in a primitive structure (node boxes and triangles blended at each
 ray's time as the portable step blends them), nearest and any hit, the ``K`` nearest hits (``max_hits``) and
 counting, cull modes and windings, ray intervals, ray and instance masks, disabled rays and the stats
 counters, in float32 or float64.

@@ -9,9 +9,9 @@ watertight test (Woop, Benthin, Wald 2013), the nearer inner child entered and t
 any-hit order of :func:`_first`), and the instance transition (ray moved by the instance's world-to-object
 rows, facing multiplied along the chain).
 :func:`trace_rays` is the general loop; :func:`trace_flat` the same loop for a primitive structure of triangles
-with a nearest or any-hit query (no instance, hit-list or analytic bookkeeping per visit), which tests both
-child boxes of a node in one vector slab test (:func:`_box_pair`, on the node rows of :func:`box_rows`) for rays
-parallel to no axis.
+and built-in spheres with a nearest or any-hit query (no instance, hit-list or analytic bookkeeping per visit),
+which tests both child boxes of a node in one vector slab test (:func:`_box_pair`, on the node rows of
+:func:`box_rows`) for rays parallel to no axis.
 
 The leaf and box tests are the shared formulas of :mod:`jaxrt._src.formulas` (slab test, shear, watertight
 triangle, analytic shapes) instantiated for Numba; this module holds the loop and the memory layout around them.
