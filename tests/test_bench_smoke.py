@@ -123,12 +123,16 @@ def test_spheres_bench_compares_builtin_spheres_with_boxes(tmp_path):
     from jaxrt.bench import spheres
 
     path = tmp_path / "spheres.json"
-    assert spheres.main(["--quick", "--json", str(path)]) == 0
-    builtin, boxes = json.loads(path.read_text())["rows"]
+    assert spheres.main(["--quick", "--triangles", "--json", str(path)]) == 0
+    builtin, boxes, triangles = json.loads(path.read_text())["rows"]
     assert builtin["geometry"].startswith("built-in") and boxes["geometry"].startswith("boxes")
     for row in (builtin, boxes):
         assert row["hits"] > 0 and row["hit_mismatches"] == 0 and row["max_rel_error"] < 1e-5
-        assert row["trace"]["mrays_s"] > 0
+    for row in (builtin, boxes, triangles):
+        assert row["trace"]["mrays_s"] > 0 and row["nodes_visited_per_ray"] >= 1
+    # the same spheres as boxes: the same tree and the same visits
+    assert builtin["nodes_visited_per_ray"] == boxes["nodes_visited_per_ray"]
+    assert "hit_mismatches" not in triangles  # its errors would be against the spheres
     assert builtin["bytes_per_primitive"] < boxes["bytes_per_primitive"]
 
 

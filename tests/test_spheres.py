@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 from test_gpu_instanced import INTERPRETED, ON_GPU, kernel_launches_here, run_kernel_tests_in_interpreter
 
 import jaxrt as rt
-from jaxrt._src.traversal import gpu
+from jaxrt._src.traversal import cpu, gpu
 
 RAYS = 256
 CAPACITY = 64
@@ -91,6 +91,12 @@ def scene(seed: int, count: int = 40, spread: float = 4.0, inside: bool = True):
     t_min[200:230] = rng.uniform(0.0, 0.8, 30)
     t_max[230:] = rng.uniform(0.3, 1.0, RAYS - 230)
     return centers, radii, origin, direction, t_min, t_max
+
+
+def skip_unless_runs(backend: str) -> None:
+    """Skip the test when ``backend`` is the CPU traversal and it cannot run here (e.g. on a GPU machine)."""
+    if backend == "cpu" and cpu.unavailable_reason() is not None:
+        pytest.skip(cpu.unavailable_reason())
 
 
 def trace(intersector, structure, origin, direction, t_min, t_max, time=None):
@@ -230,6 +236,7 @@ def test_far_small_and_large_spheres(backend):
     sphere, aimed at its centre or across it. Non-grazing hits have a relative distance error of at most 1e-6
     against float64 on the same float32 inputs, and no ray whose line passes within half a radius of the
     centre misses."""
+    skip_unless_runs(backend)
     rng = np.random.default_rng(7)
     n = RAYS // 4
     direction_of = rng.normal(size=(n, 3))
@@ -461,6 +468,7 @@ def _compare(got, want, ambiguous, fields=("type", "primitive_id", "geometry_id"
 
 @pytest.mark.parametrize("case", sorted(BACKEND_CASES))
 def test_cpu_traversal_matches_portable(random_scene, case):
+    skip_unless_runs("cpu")
     structure, (centers, radii, origin, direction, t_min, t_max), ref = random_scene
     tags = (rt.tags.normal, rt.tags.sphere_data)
     options = BACKEND_CASES[case]
@@ -470,6 +478,7 @@ def test_cpu_traversal_matches_portable(random_scene, case):
 
 
 def test_cpu_traversal_instanced_matches_portable(random_scene):
+    skip_unless_runs("cpu")
     structure, (centers, radii, origin, direction, t_min, t_max), ref = random_scene
     transform = np.array([[0.0, -1.2, 0, 0.5], [1.2, 0, 0, -1], [0, 0, 1.2, 2]], np.float32)
     scene_structure = rt.build_instance_structure([structure], rt.Instances([0], transform[None]))
@@ -478,6 +487,44 @@ def test_cpu_traversal_instanced_matches_portable(random_scene):
     want = trace(rt.Intersector(*tags, backend="portable"), scene_structure, origin, direction, t_min, t_max)
     assert np.sum(want["type"] == 4) > 50
     _compare(got, want, np.zeros(RAYS, bool))
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_cpu_lean_loop_with_triangles(dtype, monkeypatch):
+    """Spheres beside triangles in one structure take the CPU traversal's lean loop (``trace_flat``): nearest
+    and any hit with back-face culling (triangles only), bit for bit the general loop's leaves, distances and
+    stats counters (the same compiled sphere test), and the portable path's hits, in float32 and float64."""
+    skip_unless_runs("cpu")
+    from jaxrt._src import pipeline
+    from jaxrt._src.traversal import cpu_kernel
+
+    calls = []
+    lean = cpu_kernel.trace_flat
+    monkeypatch.setattr(cpu_kernel, "trace_flat", lambda *a: (calls.append(a[-2]), lean(*a))[1])
+    centers, radii, origin, direction, t_min, t_max = scene(4, count=24)
+    ground = np.array([[-9, -9, -1.5], [9, -9, -1.5], [0, 9, -1.5], [-9, 9, 1.0], [0, -9, 1.0], [9, 9, 1.0]])
+    ambiguous = reference(origin, direction, t_min, t_max, centers, radii)[4]
+    with jax.enable_x64(dtype == "float64"):
+        cast = lambda a: jnp.asarray(a, dtype)  # noqa: E731
+        geometries = [rt.SphereGeometry(cast(centers), cast(radii)), rt.TriangleGeometry(cast(ground))]
+        structure = rt.build_primitive_structure(geometries, capacity=CAPACITY)
+        assert structure.leaf_triangle.dtype == dtype
+        ray = rt.Ray(*(cast(a) for a in (origin, direction, t_min, t_max)))
+        tags = (rt.tags.normal, rt.tags.sphere_data)
+        for options in ({}, {"accept_any_intersection": True, "triangle_cull_mode": "back"}):
+            intersector, portable = (rt.Intersector(*tags, backend=b, **options) for b in ("cpu", "portable"))
+            params, arrays = pipeline.cpu_kernel_arguments(structure, ray, intersector)
+            assert params[9] == cpu._SPHERES
+            count = len(calls)
+            lean_out = cpu._run(params, arrays)
+            general_out = cpu._run((*params[:9], 1, *params[10:]), arrays)  # analytic code 1: the general loop
+            assert len(calls) == count + 1
+            for name, a, b in zip(("distance", "leaf", "chain", "visited", "tested", "overflow"), lean_out, general_out, strict=True):  # fmt: skip
+                np.testing.assert_array_equal(a, b, err_msg=name)
+            got, want = (jax.tree_util.tree_map(np.asarray, dict(i.intersect(ray, structure))) for i in (intersector, portable))  # fmt: skip
+            assert np.sum(want["type"] == 4) > 50 and np.sum(want["type"] == 1) > 10
+            _compare(got, want, np.zeros(RAYS, bool) if options else ambiguous)
+    assert calls and all(calls)  # the lean loop traced them, with its sphere test
 
 
 kernel_here = pytest.fixture(kernel_launches_here, name="kernel_here")
@@ -603,6 +650,7 @@ def test_refit_save_load_compact_and_vmap(tmp_path):
 @pytest.mark.parametrize("backend", ["portable", "cpu"])
 def test_ray_masks_select_instances_of_spheres(backend):
     """Two instances of one sphere structure with masks 1 and 2: each ray sees the instances its mask names."""
+    skip_unless_runs(backend)
     inner = rt.build_primitive_structure(rt.SphereGeometry([[0.0, 0.0, 0.0]], 1.0))
     transforms = np.stack([np.eye(3, 4), np.eye(3, 4)]).astype(np.float32)
     transforms[1, :, 3] = [0.0, 0.0, -4.0]  # behind the first

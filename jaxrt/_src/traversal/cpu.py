@@ -12,9 +12,9 @@ an incoherent order is traced sorted along a Morton curve of origin and directio
 The intersector picks this path (``backend="auto"`` or ``"cpu"``) when :func:`unavailable_reason` returns
 ``None`` (the default JAX backend is the CPU and Numba imports) and
 :func:`jaxrt._src.pipeline.kernel_declines` finds the scene and intersector covered: triangles, flat or
-instanced at any depth, bounding boxes with the built-in sphere, disk and capped cylinder functions (their
-distances equal the portable path's to rounding: XLA contracts some of their multiply-adds, the loop none),
-primitive keyframe motion of triangles in a primitive structure (node boxes and triangles blended at each
+instanced at any depth, built-in spheres, bounding boxes with the built-in sphere, disk and capped cylinder
+functions (their distances equal the portable path's to rounding: XLA contracts some of their multiply-adds,
+the loop none), primitive keyframe motion of triangles in a primitive structure (node boxes and triangles blended at each
 ray's time as the portable step blends them), nearest and any hit, the ``K`` nearest hits (``max_hits``) and
 counting, cull modes and windings, ray intervals, ray and instance masks, disabled rays and the stats
 counters, in float32 or float64.
@@ -61,6 +61,11 @@ _RAY_RANKS = (2, 2, 1, 1, 1, 1, 1)
 _RAYS = len(_SCENE_RANKS)
 #: Positions of the float arguments (scene geometry, analytic rows, keyframes and rays).
 _FLOAT_ARGS = (0, 1, 3, 4, 8, 9, 10, 11, 13, _RAYS, _RAYS + 1, _RAYS + 2, _RAYS + 3, _RAYS + 6)
+#: ``params[9]`` where the analytic leaves are built-in spheres alone (:func:`_analytic_mode`).
+_SPHERES = 2
+#: Bits of ``AnalyticLeaves.shapes`` (:func:`jaxrt._src.traversal.gpu.analytic_leaves`) the lean loop covers:
+#: triangles (bit 3) and built-in spheres (bit 5).
+_LEAN_SHAPES = (1 << 3) | (1 << 5)
 #: Rays a thread claims at a time (rays cost unevenly: small claims keep every thread busy to the end).
 CHUNK = 32
 #: Fewest rays per thread worth starting one.
@@ -179,13 +184,16 @@ def _trace(params: tuple, arrays: list[np.ndarray], boxes: np.ndarray | None) ->
     )
     consts, flags = constants(dtype), np.asarray(params, np.int64)
     counter = np.zeros(1, np.int64)
-    if levels == 0 and not hit_list and not params[9]:  # triangles only, no instances: the lean loop
+    spheres = params[9] == _SPHERES
+    if levels == 0 and not hit_list and (not params[9] or (spheres and not params[10])):
+        # triangles and built-in spheres, no instances: the lean loop
         rays = arrays[_RAYS : _RAYS + 5]
         if boxes is None:
             boxes = _box_rows_in_place(arrays[0], arrays[1])
         run = functools.partial(
             cpu_kernel.trace_flat, *arrays[:4], boxes, *rays, consts, params[0], params[3], bool(params[4]), params[5],
-            counter, CHUNK, n, out[0], out[1], *out[3:], bool(params[10]), *arrays[9:15], arrays[_RAYS + 6],
+            counter, CHUNK, n, out[0], out[1], *out[3:], bool(params[10]), *arrays[9:15], arrays[_RAYS + 6], spheres,
+            arrays[8],
         )  # fmt: skip
     else:
         run = functools.partial(cpu_kernel.trace_rays, *arrays, consts, flags, counter, CHUNK, n, *out, *hits)
@@ -398,24 +406,32 @@ def _host_arrays(params: tuple, *args: np.ndarray, boxes: np.ndarray | None = No
     return tuple(np.stack(parts).reshape(*batch, *parts[0].shape) for parts in zip(*results, strict=True))
 
 
+def _analytic_mode(analytic: Any) -> int:
+    """``params[9]``: 0 without analytic leaves, :data:`_SPHERES` where they are built-in spheres alone (beside
+    triangles), else 1."""
+    if analytic is None:
+        return 0
+    return _SPHERES if analytic.shapes & ~_LEAN_SHAPES == 0 else 1
+
+
 def _params(
     layout: TraversalLayout,
     any_hit: bool,
     cull: int,
     max_hits: int | None = None,
     count_all: bool = False,
-    analytic: bool = False,
+    analytic: int = 0,
     motion: bool = False,
 ) -> tuple[int, ...]:
     """The kernel's integer parameters (static); a hit list where ``max_hits`` is given or ``count_all``;
-    ``analytic``: the scene has analytic leaves; ``motion``: primitive keyframe motion."""
+    ``analytic``: the scene's analytic leaves (:func:`_analytic_mode`); ``motion``: primitive keyframe motion."""
     hit_list = max_hits is not None or count_all
     if hit_list and (any_hit or (count_all and max_hits) or (not count_all and (max_hits or 0) < 1)):
         raise ValueError(
             "traversal.cpu: hit lists need max_hits >= 1 (0 or None with count_all) and no any_hit "
             f"(got max_hits={max_hits}, count_all={count_all}, any_hit={any_hit})"
         )
-    return (int(layout.root), int(layout.primitive_leaves), int(layout.levels), int(layout.stack_size), int(bool(any_hit)), int(cull), int(hit_list), int(max_hits or 0), int(bool(count_all)), int(bool(analytic)), int(bool(motion)))  # fmt: skip
+    return (int(layout.root), int(layout.primitive_leaves), int(layout.levels), int(layout.stack_size), int(bool(any_hit)), int(cull), int(hit_list), int(max_hits or 0), int(bool(count_all)), int(analytic), int(bool(motion)))  # fmt: skip
 
 
 def _motion_arguments(scene: TraversalScene, layout: TraversalLayout, leaf_motion: Any) -> tuple:
@@ -492,7 +508,7 @@ def kernel_arguments(
     :func:`trace_scene` would for ``rays`` (the other arguments as there): for benchmarks
     (:func:`jaxrt._src.pipeline.cpu_kernel_arguments`)."""
     moving = leaf_motion is not None
-    params = _params(layout, any_hit, cull, max_hits, count_all, analytic is not None, moving)
+    params = _params(layout, any_hit, cull, max_hits, count_all, _analytic_mode(analytic), moving)
     rows = None if analytic is None else analytic.rows
     motion = _motion_arguments(scene, layout, leaf_motion)
     args = _arguments(scene, *rays[:6], lambda a: a, rows, motion, rays.time if moving else None)
@@ -557,7 +573,7 @@ def trace_scene(
     moving = leaf_motion is not None
     if moving and levels:
         raise ValueError("traversal.cpu.trace_scene: keyframe motion is traced in primitive structures only")
-    params = _params(layout, any_hit, cull, max_hits, count_all, analytic is not None, moving)
+    params = _params(layout, any_hit, cull, max_hits, count_all, _analytic_mode(analytic), moving)
     hit_list, k = bool(params[6]), params[7]
     detached = lax.stop_gradient
     wide = jnp.dtype(dtype).itemsize == 8

@@ -9,9 +9,9 @@ watertight test (Woop, Benthin, Wald 2013), the nearer inner child entered and t
 any-hit order of :func:`_first`), and the instance transition (ray moved by the instance's world-to-object
 rows, facing multiplied along the chain).
 :func:`trace_rays` is the general loop; :func:`trace_flat` the same loop for a primitive structure of triangles
-with a nearest or any-hit query (no instance, hit-list or analytic bookkeeping per visit), which tests both
-child boxes of a node in one vector slab test (:func:`_box_pair`, on the node rows of :func:`box_rows`) for rays
-parallel to no axis.
+and built-in spheres with a nearest or any-hit query (no instance, hit-list or analytic bookkeeping per visit),
+which tests both child boxes of a node in one vector slab test (:func:`_box_pair`, on the node rows of
+:func:`box_rows`) for rays parallel to no axis.
 
 The leaf and box tests are the shared formulas of :mod:`jaxrt._src.formulas` (slab test, shear, watertight
 triangle, analytic shapes) instantiated for Numba; this module holds the loop and the memory layout around them.
@@ -627,13 +627,16 @@ def trace_flat(
     node_lower, node_upper, node_children, leaf_triangle, rows, origin, direction, t_min_all, t_max_all, enabled,
     consts, root, stack_size, any_hit, cull, counter, chunk, end, out_distance, out_leaf, out_visited, out_tested,
     out_overflow, moving, node_keys_lower, node_keys_upper, leaf_keys, leaf_moving, motion_f, motion_i, time_all,
+    spheres, analytic_rows,
 ):  # fmt: skip
-    """:func:`trace_rays` for a primitive structure of triangles (no instance levels, no hit list, no analytic
-    leaves): the same loop without the instance, hit-list and analytic bookkeeping, and the same results. The
-    instance chain (zero columns) is not written. ``rows`` holds the node boxes as :func:`box_rows` lays them
-    out, for the vector test; the scalar test reads ``node_lower`` and ``node_upper``. With ``moving``, the
-    primitive keyframe motion of :func:`trace_rays` (its ``node_keys_*`` to ``time_all`` arguments): each
-    visited node's boxes and each tested triangle are blended at the ray's time first."""
+    """:func:`trace_rays` for a primitive structure of triangles and built-in spheres (no instance levels, no hit
+    list, no other analytic leaves): the same loop without the instance, hit-list and analytic bookkeeping, and
+    the same results. The instance chain (zero columns) is not written. ``rows`` holds the node boxes as
+    :func:`box_rows` lays them out, for the vector test; the scalar test reads ``node_lower`` and
+    ``node_upper``. With ``moving`` (triangles only), the primitive keyframe motion of :func:`trace_rays` (its
+    ``node_keys_*`` to ``time_all`` arguments): each visited node's boxes and each tested triangle are blended
+    at the ray's time first. With ``spheres``, a leaf whose row of ``analytic_rows`` (as :func:`trace_rays`
+    reads them) has code 5 is a built-in sphere, tested as :func:`_analytic` tests it."""
     stack = np.empty(max(stack_size, 1), np.int32)
     nodes_move, vanish_start, vanish_end = motion_i[0] != 0, motion_i[1] != 0, motion_i[2] != 0
     key_b = np.empty(12, consts.dtype)  # a node's boxes blended: lowers, then uppers (as _node_keys writes them)
@@ -644,6 +647,8 @@ def trace_flat(
     far_scale, parallel = consts[6], consts[7]
     lf, hf, cf, tf = node_lower.reshape(-1), node_upper.reshape(-1), node_children.reshape(-1), leaf_triangle.reshape(-1)  # fmt: skip
     rf = rows.reshape(-1)
+    af = analytic_rows.reshape(-1)
+    width = np.uint64(analytic_rows.shape[1])
     while True:
         begin = _fetch_add(counter, chunk)
         if begin >= end:
@@ -660,7 +665,8 @@ def trace_flat(
             distance = t_max_all[i]
             leaf = -1
             o0, o1, o2 = origin[i, 0], origin[i, 1], origin[i, 2]
-            i0, i1, i2, kx, ky, kz, sx, sy, sz = _load(o0, o1, o2, direction[i, 0], direction[i, 1], direction[i, 2], one, clamp, huge, clamped_huge)  # fmt: skip
+            w0, w1, w2 = direction[i, 0], direction[i, 1], direction[i, 2]
+            i0, i1, i2, kx, ky, kz, sx, sy, sz = _load(o0, o1, o2, w0, w1, w2, one, clamp, huge, clamped_huge)
             # The sheared triangle test reads the vertex components ``kx, ky, kz`` and the origin's.
             ox, oy, oz = _pick(kx, o0, o1, o2), _pick(ky, o0, o1, o2), _pick(kz, o0, o1, o2)
             ux, uy, uz = np.uint64(kx), np.uint64(ky), np.uint64(kz)
@@ -700,7 +706,12 @@ def trace_flat(
                 t1 = inf
                 if c0 < 0 and hit0:
                     tested += 1
-                    if moving:  # the triangle blended at the ray's time; a moving one may vanish
+                    a = np.uint64(-1 - c0) * width
+                    if spheres and af[a + _U3] == 5:  # a built-in sphere: centre, code, ..., radius
+                        ok0, t0, _ = _ray_sphere(af[a], af[a + _U1], af[a + _U2], af[a + _U7], o0, o1, o2, w0, w1, w2, t_min, distance)  # fmt: skip
+                        if not ok0:
+                            t0 = inf
+                    elif moving:  # the triangle blended at the ray's time; a moving one may vanish
                         _leaf_keys(leaf_keys, leaf_key, -1 - c0, leaf_w, one, key_v)
                         ok0, t0 = _triangle_at(key_v, _U1 - _U1, ux, uy, uz, ox, oy, oz, sx, sy, sz, t_min, distance, cull, inf)  # fmt: skip
                         if not visible and leaf_moving[-1 - c0]:
@@ -709,7 +720,12 @@ def trace_flat(
                         ok0, t0 = _triangle_at(tf, np.uint64(-1 - c0) * _U9, ux, uy, uz, ox, oy, oz, sx, sy, sz, t_min, distance, cull, inf)  # fmt: skip
                 if c1 < 0 and hit1:
                     tested += 1
-                    if moving:
+                    a = np.uint64(-1 - c1) * width
+                    if spheres and af[a + _U3] == 5:  # a built-in sphere: centre, code, ..., radius
+                        ok1, t1, _ = _ray_sphere(af[a], af[a + _U1], af[a + _U2], af[a + _U7], o0, o1, o2, w0, w1, w2, t_min, distance)  # fmt: skip
+                        if not ok1:
+                            t1 = inf
+                    elif moving:
                         _leaf_keys(leaf_keys, leaf_key, -1 - c1, leaf_w, one, key_v)
                         ok1, t1 = _triangle_at(key_v, _U1 - _U1, ux, uy, uz, ox, oy, oz, sx, sy, sz, t_min, distance, cull, inf)  # fmt: skip
                         if not visible and leaf_moving[-1 - c1]:
