@@ -3,10 +3,12 @@ on the last axis), differentiable where the operation is, and vmappable."""
 
 from __future__ import annotations
 
+import functools
 import math
 import operator
 
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 
 INF = math.inf
@@ -50,3 +52,25 @@ def dot3(ax, ay, az, bx, by, bz):
     if a.ndim == 1 and b.ndim == 1:
         return jnp.dot(a, b)
     return jnp.einsum("...i,...i->...", a, b)
+
+
+def epsilon_of(x):
+    """A Python float (weakly typed): the machine epsilon of ``x``'s dtype."""
+    return float(jnp.finfo(jnp.result_type(x)).eps)
+
+
+def tiny_of(x):
+    return float(jnp.finfo(jnp.result_type(x)).tiny)
+
+
+@functools.cache
+def _weights(pieces: int) -> np.ndarray:
+    from jaxrt._src.primitives.curve import _bernstein
+
+    return _bernstein(np.linspace(0.0, 1.0, pieces + 1))
+
+
+def sample_weights(x, index, pieces):
+    """Python floats (static ``index`` and ``pieces``): the weights of ``curve._bernstein``, rounded to ``x``'s
+    dtype where they multiply it (weak typing)."""
+    return tuple(float(w) for w in _weights(pieces)[index])

@@ -64,6 +64,47 @@ def _like(x, value):
     return lambda x, value: np.float64(value)
 
 
+def epsilon_of(x):
+    """The machine epsilon of ``x``'s float type (typed by the overload below)."""
+    return np.finfo(np.float64).eps
+
+
+@overload(epsilon_of, inline="always")
+def _epsilon_of(x):
+    if x == types.float32:
+        eps32 = np.float32(np.finfo(np.float32).eps)
+        return lambda x: eps32
+    eps64 = np.float64(np.finfo(np.float64).eps)
+    return lambda x: eps64
+
+
+def tiny_of(x):
+    """The smallest positive normal number of ``x``'s float type (typed by the overload below)."""
+    return np.finfo(np.float64).tiny
+
+
+@overload(tiny_of, inline="always")
+def _tiny_of(x):
+    if x == types.float32:
+        tiny32 = np.float32(np.finfo(np.float32).tiny)
+        return lambda x: tiny32
+    tiny64 = np.float64(np.finfo(np.float64).tiny)
+    return lambda x: tiny64
+
+
+@numba.njit(inline="always")
+def sample_weights(x, index, pieces):
+    """``curve._bernstein``'s weights at sample ``index`` in float64 (``pow`` as NumPy's power calls it),
+    rounded once to ``x``'s type."""
+    u = 1.0 if index == pieces else index * (1.0 / pieces)
+    v = 1.0 - u
+    w0 = math.pow(v, 3.0)
+    w1 = 3.0 * u * math.pow(v, 2.0)
+    w2 = 3.0 * math.pow(u, 2.0) * v
+    w3 = math.pow(u, 3.0)
+    return like(x, w0), like(x, w1), like(x, w2), like(x, w3)
+
+
 @numba.njit(inline="always")
 def false_like(condition):
     return False
