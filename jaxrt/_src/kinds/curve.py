@@ -48,6 +48,6 @@ CURVE = Kind(
     fields={"curve_parameter": "curve_data"},
     coverage={
         "gpu": Coverage(instanced=False, motion=False, alone=True, waves=False),
-        "cpu": Coverage(traced=False),
+        "cpu": Coverage(instanced=False, motion=False, alone=True, waves=False),
     },
 )

@@ -7,8 +7,9 @@ frame from :func:`jaxrt._src.primitives.curve.curve_ray` (computed by JAX, as th
 the control points in ray space, the hull cull, and the round or flat test the segment's flags and the static
 ``flat`` choice call for. A culled ray returns before the test (the formula's other backends mask instead).
 
-The static curve options travel in the kernel's integer parameters (:func:`curve_params`), the tolerance as
-the bits of its float64 value, so that it rounds to the geometry's dtype as a Python float does in JAX.
+The static curve options travel in the kernel's integer parameters (:func:`jaxrt._src.traversal.cpu.curve_params`),
+the tolerance as the bits of its float64 value, so that it rounds to the geometry's dtype as a Python float
+does in JAX.
 """
 
 from __future__ import annotations
@@ -25,29 +26,13 @@ _hull_cull = _curve.hull_cull
 _round_test = _curve.round_test
 _flat_test = _curve.flat_test
 
-__all__ = ["PARAMS", "curve_leaf", "curve_params", "pairs"]
-
-#: Integer parameters of the curve test in the kernel's ``params``: whether the scene has curves, pieces,
-#: iterations, approach iterations, disk caps compiled, sphere caps compiled, flat (0 round, 1 flat, 2 per
-#: segment), the tolerance's float64 bits.
-PARAMS = 8
-
-
-def curve_params(options: tuple | None) -> tuple[int, ...]:
-    """The :data:`PARAMS` integers of the static curve options of :class:`jaxrt._src.traversal.gpu.CurveLeaves`
-    (``(pieces, iterations, approach, tolerance, disk, sphere, flat)``), or zeros without curves."""
-    if options is None:
-        return (0,) * PARAMS
-    pieces, iterations, approach, tolerance, disk, sphere, flat = options
-    bits = int(np.array(float(tolerance), np.float64).view(np.int64))
-    return (1, int(pieces), int(iterations), int(approach), int(bool(disk)), int(bool(sphere)), int(flat), bits)
-
+__all__ = ["curve_leaf", "pairs"]
 
 @numba.njit(cache=True)
 def curve_leaf(segments, flags, leaf, ox, oy, oz, frame, ray, t_min, t_max, params, at, inf):
     """``(accepted, distance)`` of leaf ``leaf``'s segment (``segments[leaf]``, flags ``flags[leaf]``) for ray
     ``ray`` (origin ``o``, frame row ``frame[ray]``: ``e1, e2, n, 1 / |d|``) in ``[t_min, t_max]``; the curve
-    options are ``params[at : at + PARAMS]`` (:func:`curve_params`)."""
+    options are ``params[at : at + 8]`` (:func:`jaxrt._src.traversal.cpu.curve_params`)."""
     pieces, iterations, approach = params[at + 1], params[at + 2], params[at + 3]
     disk, sphere, flat = params[at + 4] != 0, params[at + 5] != 0, params[at + 6]
     tolerance = params[at + 7 : at + 8].view(np.float64)[0]
