@@ -270,7 +270,14 @@ def _intersect_jit(intersector: Any, rays: Ray, structure: Any, host: Any = None
     moving = view.layout.motion
     if intersector.max_hits is None:
         fields = result_fields.hit_fields(
-            intersector, view, *geometry, found.leaf, found.distance, found.instances, time=ray.time if moving else None
+            intersector,
+            view,
+            *geometry,
+            found.leaf,
+            found.distance,
+            found.instances,
+            time=ray.time if moving else None,
+            curve=found.curve,
         )
     else:  # the same fields for each of the K hits, on an axis after the ray axis
         k = intersector.max_hits

@@ -46,6 +46,13 @@ from jaxrt._src.formulas.vocabulary import (
 #: (which compiles the round test several times slower).
 NUMBA_INLINE = False
 
+#: Which part of the segment was hit (``curve.PART_*``).
+PART_TUBE = 0
+PART_SPHERE = 1
+PART_DISK = 2
+PART_RIBBON = 3
+PART_FACING_DISK = 4
+
 __all__ = [
     "ray_space",
     "hull_cull",
@@ -239,12 +246,12 @@ def end_disk(px, py, pz, pr, dx, dy, dz, dr, fx, fy, fz, sign):
     return facing & inside, t
 
 
-def nearer(ok, t, u, best_ok, best_t, best_u, lo, hi):
+def nearer(ok, t, u, part, best_ok, best_t, best_u, best_part, lo, hi):
     """``curve._pick`` one candidate at a time: a later candidate wins only with a strictly smaller key."""
     good = ok & (t >= lo) & (t <= hi)
     key = select(good, t, like(t, INF))
     take = key < best_t
-    return best_ok | good, select(take, key, best_t), select(take, u, best_u)
+    return best_ok | good, select(take, key, best_t), select(take, u, best_u), select(take, part, best_part)
 
 
 def to_ray(lx, ly, lz, bx, by, bz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz):
@@ -317,9 +324,10 @@ def round_test(
     x0, y0, z0, r0, x1, y1, z1, r1, x2, y2, z2, r2, x3, y3, z3, r3, pvx, pvy, pvz, pvr, bits, lo, hi, noise,
     pieces, iterations, approach, tolerance, disk, sphere,
 ):  # fmt: skip
-    """``curve._round``: ``(hit, t, u)`` of the nearest entry into the round segment in ray space within
+    """``curve._round``: ``(hit, t, u, part)`` of the nearest entry into the round segment in ray space within
     ``[lo, hi]`` (``t`` in world length along the unit direction; ``inf`` on a miss). ``bits``: the segment's
-    flags; ``disk``, ``sphere``: whether disk and sphere caps are compiled."""
+    flags; ``disk``, ``sphere``: whether disk and sphere caps are compiled; ``part`` the ``PART_*`` code of the
+    part hit (as ``curve.intersect`` reports it)."""
     h = like(x0, 1.0 / pieces)
     zero = like(x0, 0.0)
     one = like(x0, 1.0)
@@ -495,20 +503,20 @@ def round_test(
         end_accept = end_accept | ((has_next == 0) & (caps == 2))
     start_ok = start_ok & start_accept & start_surface
     end_ok = end_ok & end_accept & end_surface
-    best_ok, best_t, best_u = nearer(tube_ok, tube_t, tube_u, false_like(has_previous), inf, zero, lo, hi)
-    best_ok, best_t, best_u = nearer(start_ok, start_t, zero, best_ok, best_t, best_u, lo, hi)
-    best_ok, best_t, best_u = nearer(end_ok, end_t, one, best_ok, best_t, best_u, lo, hi)
+    best = nearer(tube_ok, tube_t, tube_u, PART_TUBE, false_like(has_previous), inf, zero, PART_TUBE, lo, hi)
+    best = nearer(start_ok, start_t, zero, PART_SPHERE, *best, lo, hi)
+    best = nearer(end_ok, end_t, one, PART_SPHERE, *best, lo, hi)
     if disk:
         fx = x3 - x0
         fy = y3 - y0
         fz = z3 - z0
         disk_ok, disk_t = end_disk(x0, y0, z0, r0, dsx, dsy, dsz, dsr, fx, fy, fz, 1.0)
         disk_ok = disk_ok & (has_previous == 0) & (caps == 1)
-        best_ok, best_t, best_u = nearer(disk_ok, disk_t, zero, best_ok, best_t, best_u, lo, hi)
+        best = nearer(disk_ok, disk_t, zero, PART_DISK, *best, lo, hi)
         disk_ok, disk_t = end_disk(x3, y3, z3, r3, dex, dey, dez, der, fx, fy, fz, -1.0)
         disk_ok = disk_ok & (has_next == 0) & (caps == 1)
-        best_ok, best_t, best_u = nearer(disk_ok, disk_t, one, best_ok, best_t, best_u, lo, hi)
-    return best_ok, best_t, best_u
+        best = nearer(disk_ok, disk_t, one, PART_DISK, *best, lo, hi)
+    return best
 
 
 def ribbon_newton(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, u, near, noise, lo, hi, iterations, h, tolerance):  # fmt: skip
@@ -540,7 +548,7 @@ def flat_test(
     x0, y0, z0, r0, x1, y1, z1, r1, x2, y2, z2, r2, x3, y3, z3, r3, pvx, pvy, bits, lo, hi, noise,
     pieces, iterations, tolerance, disk, sphere,
 ):  # fmt: skip
-    """``curve._flat``: ``(hit, t, u)`` of the nearest entry into the ray-facing ribbon segment in ray space
+    """``curve._flat``: ``(hit, t, u, part)`` of the nearest entry into the ray-facing ribbon segment in ray space
     within ``[lo, hi]`` (as :func:`round_test`)."""
     h = like(x0, 1.0 / pieces)
     zero = like(x0, 0.0)
@@ -641,22 +649,22 @@ def flat_test(
     end_free = x3 * dex + y3 * dey <= 0
     joint_open = x0 * pvx + y0 * pvy <= 0
     start_disk = has_previous & joint_open
-    best_ok, best_t, best_u = nearer(ribbon_ok, ribbon_t, ribbon_u, false_like(has_previous), inf, zero, lo, hi)
+    best = nearer(ribbon_ok, ribbon_t, ribbon_u, PART_RIBBON, false_like(has_previous), inf, zero, PART_RIBBON, lo, hi)
     if disk:
         start_disk = start_disk | ((has_previous == 0) & (caps == 1))
-    best_ok, best_t, best_u = nearer(start_in & start_free & start_disk, z0, zero, best_ok, best_t, best_u, lo, hi)
+    best = nearer(start_in & start_free & start_disk, z0, zero, PART_FACING_DISK, *best, lo, hi)
     if sphere:
         _, start_sphere_t = sphere_entry(x0, y0, z0, r0)
         start_sphere = (has_previous == 0) & (caps == 2)
-        best_ok, best_t, best_u = nearer(start_in & start_free & start_sphere, start_sphere_t, zero, best_ok, best_t, best_u, lo, hi)  # fmt: skip
+        best = nearer(start_in & start_free & start_sphere, start_sphere_t, zero, PART_SPHERE, *best, lo, hi)
     if disk:
         end_disk_ok = (has_next == 0) & (caps == 1)
-        best_ok, best_t, best_u = nearer(end_in & end_free & end_disk_ok, z3, one, best_ok, best_t, best_u, lo, hi)
+        best = nearer(end_in & end_free & end_disk_ok, z3, one, PART_FACING_DISK, *best, lo, hi)
     if sphere:
         _, end_sphere_t = sphere_entry(x3, y3, z3, r3)
         end_sphere = (has_next == 0) & (caps == 2)
-        best_ok, best_t, best_u = nearer(end_in & end_free & end_sphere, end_sphere_t, one, best_ok, best_t, best_u, lo, hi)  # fmt: skip
-    return best_ok, best_t, best_u
+        best = nearer(end_in & end_free & end_sphere, end_sphere_t, one, PART_SPHERE, *best, lo, hi)
+    return best
 
 
 def segment(
@@ -664,8 +672,9 @@ def segment(
     vx, vy, vz, vr, ox, oy, oz, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz, scale_t, t_min, t_max,
     pieces, iterations, approach, tolerance, disk, sphere, flat,
 ):  # fmt: skip
-    """The leaf test of one packed segment (``curve.intersect``): ``(hit, distance, u)``, the distance in units
-    of the ray direction's length (``inf`` on a miss), ``u`` the segment parameter (0 on a miss).
+    """The leaf test of one packed segment (``curve.intersect``): ``(hit, distance, u, part)``, the distance in
+    units of the ray direction's length (``inf`` on a miss), ``u`` the segment parameter (0 on a miss), ``part``
+    the ``PART_*`` code of the part hit.
 
     The segment is its row of :func:`jaxrt._src.traversal.packed.pack_curves` (control points ``l`` and radii
     relative to the base point, the flags ``bits``, the predecessor's joint derivative ``v``); the ray its
@@ -679,21 +688,22 @@ def segment(
     hi = div_rn(t_max, scale_t)
     live, noise = hull_cull(x0, y0, z0, r0, x1, y1, z1, r1, x2, y2, z2, r2, x3, y3, z3, r3, lo, hi, tolerance)
     if flat != 1:
-        hit, t, u = round_test(
+        hit, t, u, part = round_test(
             x0, y0, z0, r0, x1, y1, z1, r1, x2, y2, z2, r2, x3, y3, z3, r3, pvx, pvy, pvz, vr, bits, lo, hi, noise,
             pieces, iterations, approach, tolerance, disk, sphere,
         )  # fmt: skip
     if flat != 0:
-        flat_hit, flat_t, flat_u = flat_test(
+        flat_hit, flat_t, flat_u, flat_part = flat_test(
             x0, y0, z0, r0, x1, y1, z1, r1, x2, y2, z2, r2, x3, y3, z3, r3, pvx, pvy, bits, lo, hi, noise,
             pieces, iterations, tolerance, disk, sphere,
         )  # fmt: skip
         if flat == 1:
-            hit, t, u = flat_hit, flat_t, flat_u
+            hit, t, u, part = flat_hit, flat_t, flat_u, flat_part
         else:
             is_flat = (bits & 16) != 0
             hit = select(is_flat, flat_hit, hit)
             t = select(is_flat, flat_t, t)
             u = select(is_flat, flat_u, u)
+            part = select(is_flat, flat_part, part)
     hit = live & hit
-    return hit, select(hit, t * scale_t, like(t, INF)), select(hit, u, like(u, 0.0))
+    return hit, select(hit, t * scale_t, like(t, INF)), select(hit, u, like(u, 0.0)), part

@@ -94,15 +94,13 @@ def _tiny_of(x):
 
 @numba.njit(inline="always")
 def sample_weights(x, index, pieces):
-    """``curve._bernstein``'s weights at sample ``index`` in float64 (``pow`` as NumPy's power calls it),
-    rounded once to ``x``'s type."""
+    """``curve._bernstein``'s weights at sample ``index`` in float64, rounded once to ``x``'s type. The powers
+    are products (NumPy calls ``pow``): equal in float64 where ``index / pieces`` is a dyadic fraction (every
+    power of two of pieces), else within an ulp of float64, which rounds to the same float32 weight except
+    within an ulp of float64 of a rounding boundary."""
     u = 1.0 if index == pieces else index * (1.0 / pieces)
     v = 1.0 - u
-    w0 = math.pow(v, 3.0)
-    w1 = 3.0 * u * math.pow(v, 2.0)
-    w2 = 3.0 * math.pow(u, 2.0) * v
-    w3 = math.pow(u, 3.0)
-    return like(x, w0), like(x, w1), like(x, w2), like(x, w3)
+    return like(x, v * v * v), like(x, 3.0 * u * (v * v)), like(x, 3.0 * (u * u) * v), like(x, u * u * u)
 
 
 @numba.njit(inline="always")

@@ -204,7 +204,16 @@ def _trace(params: tuple, arrays: list[np.ndarray], boxes: np.ndarray | None) ->
     run()
     for helper in helpers:
         helper.result()
-    return out + hits if hit_list else out
+    out = out + hits if hit_list else out
+    if params[11]:  # curves: the parameter and part of each nearest curve hit, for the result fields
+        curve = (np.empty(n, dtype), np.empty(n, np.int32))
+        at = len(params) - CURVE_PARAMS
+        rays = arrays[_RAYS : _RAYS + 5]
+        cpu_kernel.cpu_curves.nearest_parts(
+            arrays[15], arrays[16], out[1], rays[0], arrays[_RAYS + 7], *rays[2:], flags, at, consts[2], *curve
+        )
+        out = out + curve
+    return out
 
 
 def _host(params: tuple, wide: bool, hosted: tuple | None, *args: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -232,9 +241,9 @@ def _host(params: tuple, wide: bool, hosted: tuple | None, *args: np.ndarray) ->
             for i, a in enumerate(args)
         )
     out = _host_arrays(params, *args, boxes=boxes)
-    if wide:  # the float outputs (distances, and the hit distances of a hit list) as pairs of words
+    if wide:  # the float outputs (distances, the hit distances of a hit list, curve parameters) as pairs of words
         words = lambda a: a.view(np.uint32).reshape(*a.shape, 2)  # noqa: E731
-        out = tuple(words(a) if i in (0, 6) else a for i, a in enumerate(out))
+        out = tuple(words(a) if a.dtype == np.float64 else a for a in out)
     return out
 
 
@@ -571,7 +580,9 @@ def trace_scene(
 
     Returns:
       The portable traversal's :class:`~jaxrt._src.traversal.scene.TraversalResult`; with ``max_hits`` or
-      ``count_all`` its ``hits`` too (then ``leaf`` is the first hit and ``distance`` the culling bound).
+      ``count_all`` its ``hits`` too (then ``leaf`` is the first hit and ``distance`` the culling bound); with
+      ``curves`` its ``curve``: the curve parameter and part of each ray's ``leaf`` where that is a curve,
+      tested again in the ray's interval (the exact test the result fields would repeat).
     """
     dtype = scene.node_lower.dtype
     if origin.dtype != dtype:
@@ -609,6 +620,11 @@ def trace_scene(
             jax.ShapeDtypeStruct((n,), jnp.int32),
             jax.ShapeDtypeStruct((n, k, levels), jnp.int32),
         )
+    if curves is not None:
+        shapes += (
+            jax.ShapeDtypeStruct((n, 2), jnp.uint32) if wide else jax.ShapeDtypeStruct((n,), dtype),
+            jax.ShapeDtypeStruct((n,), jnp.int32),
+        )
     hosted = None
     if host is not None:  # arrays read in place (see host_scene): the scene's, and maybe the rays'
         host, boxes = host
@@ -632,6 +648,9 @@ def trace_scene(
     floats = lambda a: lax.bitcast_convert_type(a, dtype) if wide else a  # noqa: E731
     hits = None
     if hit_list:
-        distances, leaves, total, chains = out[6:]
+        distances, leaves, total, chains = out[6:10]
         hits = HitList(floats(distances), leaves, total, chains if levels else None)
-    return TraversalResult(floats(out[0]), *out[1:6], hits)
+    nearest = None
+    if curves is not None:
+        nearest = (floats(out[-2]), out[-1])
+    return TraversalResult(floats(out[0]), *out[1:6], hits, nearest)

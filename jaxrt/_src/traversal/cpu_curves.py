@@ -26,13 +26,14 @@ _hull_cull = _curve.hull_cull
 _round_test = _curve.round_test
 _flat_test = _curve.flat_test
 
-__all__ = ["curve_leaf", "pairs"]
+__all__ = ["curve_hit", "curve_leaf", "nearest_parts", "pairs"]
 
 @numba.njit(cache=True)
-def curve_leaf(segments, flags, leaf, ox, oy, oz, frame, ray, t_min, t_max, params, at, inf):
-    """``(accepted, distance)`` of leaf ``leaf``'s segment (``segments[leaf]``, flags ``flags[leaf]``) for ray
-    ``ray`` (origin ``o``, frame row ``frame[ray]``: ``e1, e2, n, 1 / |d|``) in ``[t_min, t_max]``; the curve
-    options are ``params[at : at + 8]`` (:func:`jaxrt._src.traversal.cpu.curve_params`)."""
+def curve_hit(segments, flags, leaf, ox, oy, oz, frame, ray, t_min, t_max, params, at, inf):
+    """``(accepted, distance, u, part)`` of leaf ``leaf``'s segment (``segments[leaf]``, flags ``flags[leaf]``)
+    for ray ``ray`` (origin ``o``, frame row ``frame[ray]``: ``e1, e2, n, 1 / |d|``) in ``[t_min, t_max]``:
+    ``u`` the curve parameter and ``part`` the ``PART_*`` code of the part hit (as ``curve.intersect``
+    reports them); the curve options are ``params[at : at + 8]`` (:func:`jaxrt._src.traversal.cpu.curve_params`)."""
     pieces, iterations, approach = params[at + 1], params[at + 2], params[at + 3]
     disk, sphere, flat = params[at + 4] != 0, params[at + 5] != 0, params[at + 6]
     tolerance = params[at + 7 : at + 8].view(np.float64)[0]
@@ -48,29 +49,55 @@ def curve_leaf(segments, flags, leaf, ox, oy, oz, frame, ray, t_min, t_max, para
     r0, r1, r2, r3 = s[0, 3], s[1, 3], s[2, 3], s[3, 3]
     lo = t_min / scale_t
     hi = t_max / scale_t
+    zero = scale_t - scale_t
     live, noise = _hull_cull(x0, y0, z0, r0, x1, y1, z1, r1, x2, y2, z2, r2, x3, y3, z3, r3, lo, hi, tolerance)
     if not live:
-        return False, inf
+        return False, inf, zero, 0
     if flat == 1 or (flat == 2 and (bits & 16) != 0):
-        hit, t, _ = _flat_test(
+        hit, t, u, part = _flat_test(
             x0, y0, z0, r0, x1, y1, z1, r1, x2, y2, z2, r2, x3, y3, z3, r3, pvx, pvy, bits, lo, hi, noise,
             pieces, iterations, tolerance, disk, sphere,
         )  # fmt: skip
     else:
-        hit, t, _ = _round_test(
+        hit, t, u, part = _round_test(
             x0, y0, z0, r0, x1, y1, z1, r1, x2, y2, z2, r2, x3, y3, z3, r3, pvx, pvy, pvz, s[5, 3], bits, lo, hi,
             noise, pieces, iterations, approach, tolerance, disk, sphere,
         )  # fmt: skip
     if hit:
-        return True, t * scale_t
-    return False, inf
+        return True, t * scale_t, u, part
+    return False, inf, zero, 0
 
 
 @numba.njit(cache=True)
-def pairs(segments, flags, origin, frame, t_min, t_max, params, inf, out_hit, out_distance):
-    """:func:`curve_leaf` of segment ``i`` and ray ``i`` for every ``i`` (the formula tests' loop)."""
+def curve_leaf(segments, flags, leaf, ox, oy, oz, frame, ray, t_min, t_max, params, at, inf):
+    """``(accepted, distance)`` of :func:`curve_hit`: the traversal's leaf test."""
+    ok, t, _, _ = curve_hit(segments, flags, leaf, ox, oy, oz, frame, ray, t_min, t_max, params, at, inf)
+    return ok, t
+
+
+@numba.njit(nogil=True, cache=True)
+def nearest_parts(segments, flags, leaf, origin, frame, t_min, t_max, enabled, params, at, inf, out_u, out_part):
+    """The curve parameter and part (:func:`curve_hit`) of each enabled ray's nearest hit ``leaf[i]`` where
+    that leaf is a curve, tested again in the ray's interval as the result fields re-test it
+    (``jaxrt._src.curves.curve_hit_fields``); 0 elsewhere."""
+    for i in range(leaf.shape[0]):
+        out_u[i] = 0
+        out_part[i] = 0
+        k = leaf[i]
+        if enabled[i] and k >= 0 and (flags[k] & 32) != 0:
+            _, _, u, part = curve_hit(
+                segments, flags, k, origin[i, 0], origin[i, 1], origin[i, 2], frame, i, t_min[i], t_max[i], params,
+                at, inf,
+            )  # fmt: skip
+            out_u[i] = u
+            out_part[i] = part
+
+
+@numba.njit(cache=True)
+def pairs(segments, flags, origin, frame, t_min, t_max, params, inf, out_hit, out_distance, out_u, out_part):
+    """:func:`curve_hit` of segment ``i`` and ray ``i`` for every ``i`` (the formula tests' loop)."""
     for i in range(origin.shape[0]):
-        out_hit[i], out_distance[i] = curve_leaf(
+        out_hit[i], out_distance[i], out_u[i], out_part[i] = curve_hit(
             segments, flags, i, origin[i, 0], origin[i, 1], origin[i, 2], frame, i, t_min[i], t_max[i], params, 0, inf
         )
 
