@@ -30,6 +30,7 @@ from __future__ import annotations
 from jaxrt._src.formulas.vocabulary import (
     INF,
     absolute,
+    any_lane,
     div_rn,
     epsilon_of,
     false_like,
@@ -397,56 +398,59 @@ def round_test(
             qx = ax + s * p1x
             qy = ay + s * p1y
             near = qx * qx + qy * qy <= reach * reach
-            u = (fi + s) * h
-            a = clip(u - h, zero, one)
-            b = clip(u + h, zero, one)
-            for _ in range(approach):
-                # Safeguarded Newton on h(u) = p . p' - r r' in the bracket [a, b] (bisection where it leaves it).
-                x, dx, ddx = evaluate(cx0, cx1, cx2, cx3, u)
-                y, dy, ddy = evaluate(cy0, cy1, cy2, cy3, u)
-                r, dr, ddr = evaluate(cr0, cr1, cr2, cr3, u)
-                value = x * dx + y * dy - r * dr
-                slope = dx * dx + dy * dy + x * ddx + y * ddy - dr * dr - r * ddr
-                a = select(value < 0, u, a)
-                b = select(value > 0, u, b)
-                step = u - div_rn(value, select(slope > 0, slope, one))
-                good = (slope > 0) & (step >= a) & (step <= b)
-                u = select(good, step, like(u, 0.5) * (a + b))
-            # The closest of the iterate and the bracket's ends (the first on ties).
-            x = value_at(cx0, cx1, cx2, cx3, u)
-            y = value_at(cy0, cy1, cy2, cy3, u)
-            r = value_at(cr0, cr1, cr2, cr3, u)
-            best = x * x + y * y - r * r
-            u_close = u
-            x = value_at(cx0, cx1, cx2, cx3, a)
-            y = value_at(cy0, cy1, cy2, cy3, a)
-            r = value_at(cr0, cr1, cr2, cr3, a)
-            gap = x * x + y * y - r * r
-            u_close = select(gap < best, a, u_close)
-            best = minimum(gap, best)
-            x = value_at(cx0, cx1, cx2, cx3, b)
-            y = value_at(cy0, cy1, cy2, cy3, b)
-            r = value_at(cr0, cr1, cr2, cr3, b)
-            gap = x * x + y * y - r * r
-            u_close = select(gap < best, b, u_close)
-            x, dx, _ = evaluate(cx0, cx1, cx2, cx3, u_close)
-            y, dy, _ = evaluate(cy0, cy1, cy2, cy3, u_close)
-            z, dz, _ = evaluate(cz0, cz1, cz2, cz3, u_close)
-            r = value_at(cr0, cr1, cr2, cr3, u_close)
-            depth = diff_of_squares(absolute(r), sqrt(x * x + y * y))
-            touching = near & (depth >= like(x, -2.0) * noise * (absolute(r) + noise))
-            across2 = dx * dx + dy * dy
-            shift = div_rn(
-                -dz * sqrt(maximum(depth, zero)), sqrt(maximum(across2 * (across2 + dz * dz), like(x, 1e-30)))
-            )
-            u_try = clip(u_close + clip(shift, -h, h), zero, one)
-            t_try = entry_at(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, u_try)
-            key = select(touching & (t_try >= low) & (t_try <= hi), t_try, inf)
-            take = (key < touch_best) | (i == 0)
-            touch_best = select(take, key, touch_best)
-            t_entry = select(take, t_try, t_entry)
-            u_entry = select(take, u_try, u_entry)
-            touches = touches | touching
+            # The piece's values count where it is near, and the first piece's always (the portable gather's
+            # values where no piece touches).
+            if any_lane(near | (i == 0)):
+                u = (fi + s) * h
+                a = clip(u - h, zero, one)
+                b = clip(u + h, zero, one)
+                for _ in range(approach):
+                    # Safeguarded Newton on h(u) = p . p' - r r' in the bracket [a, b] (bisection where it leaves it).
+                    x, dx, ddx = evaluate(cx0, cx1, cx2, cx3, u)
+                    y, dy, ddy = evaluate(cy0, cy1, cy2, cy3, u)
+                    r, dr, ddr = evaluate(cr0, cr1, cr2, cr3, u)
+                    value = x * dx + y * dy - r * dr
+                    slope = dx * dx + dy * dy + x * ddx + y * ddy - dr * dr - r * ddr
+                    a = select(value < 0, u, a)
+                    b = select(value > 0, u, b)
+                    step = u - div_rn(value, select(slope > 0, slope, one))
+                    good = (slope > 0) & (step >= a) & (step <= b)
+                    u = select(good, step, like(u, 0.5) * (a + b))
+                # The closest of the iterate and the bracket's ends (the first on ties).
+                x = value_at(cx0, cx1, cx2, cx3, u)
+                y = value_at(cy0, cy1, cy2, cy3, u)
+                r = value_at(cr0, cr1, cr2, cr3, u)
+                best = x * x + y * y - r * r
+                u_close = u
+                x = value_at(cx0, cx1, cx2, cx3, a)
+                y = value_at(cy0, cy1, cy2, cy3, a)
+                r = value_at(cr0, cr1, cr2, cr3, a)
+                gap = x * x + y * y - r * r
+                u_close = select(gap < best, a, u_close)
+                best = minimum(gap, best)
+                x = value_at(cx0, cx1, cx2, cx3, b)
+                y = value_at(cy0, cy1, cy2, cy3, b)
+                r = value_at(cr0, cr1, cr2, cr3, b)
+                gap = x * x + y * y - r * r
+                u_close = select(gap < best, b, u_close)
+                x, dx, _ = evaluate(cx0, cx1, cx2, cx3, u_close)
+                y, dy, _ = evaluate(cy0, cy1, cy2, cy3, u_close)
+                z, dz, _ = evaluate(cz0, cz1, cz2, cz3, u_close)
+                r = value_at(cr0, cr1, cr2, cr3, u_close)
+                depth = diff_of_squares(absolute(r), sqrt(x * x + y * y))
+                touching = near & (depth >= like(x, -2.0) * noise * (absolute(r) + noise))
+                across2 = dx * dx + dy * dy
+                shift = div_rn(
+                    -dz * sqrt(maximum(depth, zero)), sqrt(maximum(across2 * (across2 + dz * dz), like(x, 1e-30)))
+                )
+                u_try = clip(u_close + clip(shift, -h, h), zero, one)
+                t_try = entry_at(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, u_try)
+                key = select(touching & (t_try >= low) & (t_try <= hi), t_try, inf)
+                take = (key < touch_best) | (i == 0)
+                touch_best = select(take, key, touch_best)
+                t_entry = select(take, t_try, t_entry)
+                u_entry = select(take, u_try, u_entry)
+                touches = touches | touching
         px, py, pz, pr = ax, ay, az, ar
         ax, ay, az, ar = bx, by, bz, br
     cone_wins = cone_best <= sphere_best  # the cones come first in the portable candidate order
@@ -460,26 +464,30 @@ def round_test(
     if iterations > 0:
         touch_ok = touch_best < inf
         found = chord_ok | touch_ok
-        t_chord = entry_at(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, chord_u)
-        # Two starts refined side by side: the chord's hit and the entry through the closest approach.
-        u_a = select(chord_ok, chord_u, u_entry)
-        t_a = select(chord_ok, t_chord, t_entry)
-        u_a, t_a = tube_newton(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, u_a, t_a, iterations, h)  # fmt: skip
-        u_b, t_b = tube_newton(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, u_entry, t_entry, iterations, h)  # fmt: skip
-        conv_a, valid_a = tube_accept(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, u_a, t_a, found, noise, lo, hi, tolerance)  # fmt: skip
-        conv_b, valid_b = tube_accept(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, u_b, t_b, found, noise, lo, hi, tolerance)  # fmt: skip
-        key_a = select(valid_a, t_a, inf)
-        key_b = select(valid_b, t_b, inf)
-        second = key_b < key_a
-        tube = select(second, valid_b, valid_a)
-        t = select(second, t_b, t_a)
-        u = select(second, u_b, u_a)
-        # Newton failed but the curve is touched: the chord's hit (not where Newton is leaving the segment).
-        leaving = (u <= 0) | (u >= 1)
-        fallback = chord_ok & touches & ((conv_a | conv_b) == 0) & (leaving == 0) & (chord_t >= lo) & (chord_t <= hi)
-        tube_ok = tube | fallback
-        tube_t = select(tube, t, chord_t)
-        tube_u = clip(select(tube, u, chord_u), zero, one)
+        # Where nothing is found no Newton result is accepted and there is no fallback: the chord's values.
+        tube_ok = false_like(found)
+        tube_u = clip(chord_u, zero, one)
+        if any_lane(found):
+            t_chord = entry_at(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, chord_u)
+            # Two starts refined side by side: the chord's hit and the entry through the closest approach.
+            u_a = select(chord_ok, chord_u, u_entry)
+            t_a = select(chord_ok, t_chord, t_entry)
+            u_a, t_a = tube_newton(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, u_a, t_a, iterations, h)  # fmt: skip
+            u_b, t_b = tube_newton(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, u_entry, t_entry, iterations, h)  # fmt: skip
+            conv_a, valid_a = tube_accept(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, u_a, t_a, found, noise, lo, hi, tolerance)  # fmt: skip
+            conv_b, valid_b = tube_accept(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, u_b, t_b, found, noise, lo, hi, tolerance)  # fmt: skip
+            key_a = select(valid_a, t_a, inf)
+            key_b = select(valid_b, t_b, inf)
+            second = key_b < key_a
+            tube = select(second, valid_b, valid_a)
+            t = select(second, t_b, t_a)
+            u = select(second, u_b, u_a)
+            # Newton failed but the curve is touched: the chord's hit (not where Newton is leaving the segment).
+            leaving = (u <= 0) | (u >= 1)
+            fallback = chord_ok & touches & ((conv_a | conv_b) == 0) & (leaving == 0) & (chord_t >= lo) & (chord_t <= hi)
+            tube_ok = tube | fallback
+            tube_t = select(tube, t, chord_t)
+            tube_u = clip(select(tube, u, chord_u), zero, one)
 
     # The end spheres: a cap, or the fill of a kink at a joint (drawn by the segment that starts there).
     three = like(x0, 3.0)
@@ -598,19 +606,21 @@ def flat_test(
                 near = near | (s >= 1)
             grown = reach + grow
             near = near & (closest2 <= grown * grown)
-            key, t, u = ribbon_newton(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, u_piece, near, noise, lo, hi, iterations, h, tolerance)  # fmt: skip
-            take = key < piece_best
-            piece_best = select(take, key, piece_best)
-            piece_t = select(take, t, piece_t)
-            piece_u = select(take, u, piece_u)
+            if any_lane(near):
+                key, t, u = ribbon_newton(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, u_piece, near, noise, lo, hi, iterations, h, tolerance)  # fmt: skip
+                take = key < piece_best
+                piece_best = select(take, key, piece_best)
+                piece_t = select(take, t, piece_t)
+                piece_u = select(take, u, piece_u)
             if i > 0:
                 vertex_grown = ar + grow
                 near = kink & (vertex2 <= vertex_grown * vertex_grown)
-                key, t, u = ribbon_newton(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, fi * h, near, noise, lo, hi, iterations, h, tolerance)  # fmt: skip
-                take = key < vertex_best
-                vertex_best = select(take, key, vertex_best)
-                vertex_t = select(take, t, vertex_t)
-                vertex_u = select(take, u, vertex_u)
+                if any_lane(near):
+                    key, t, u = ribbon_newton(cx0, cx1, cx2, cx3, cy0, cy1, cy2, cy3, cz0, cz1, cz2, cz3, cr0, cr1, cr2, cr3, fi * h, near, noise, lo, hi, iterations, h, tolerance)  # fmt: skip
+                    take = key < vertex_best
+                    vertex_best = select(take, key, vertex_best)
+                    vertex_t = select(take, t, vertex_t)
+                    vertex_u = select(take, u, vertex_u)
         else:
             t_piece = az + s * (bz - az)
             crossing = interior & (closest2 <= reach * reach)

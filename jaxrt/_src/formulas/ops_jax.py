@@ -74,3 +74,8 @@ def sample_weights(x, index, pieces):
     """Python floats (static ``index`` and ``pieces``): the weights of ``curve._bernstein``, rounded to ``x``'s
     dtype where they multiply it (weak typing)."""
     return tuple(float(w) for w in _weights(pieces)[index])
+
+
+def any_lane(condition):
+    """Always ``True``: every lane of a JAX array runs the branch (its results are selected per lane)."""
+    return True

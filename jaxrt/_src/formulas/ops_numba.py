@@ -104,6 +104,11 @@ def sample_weights(x, index, pieces):
 
 
 @numba.njit(inline="always")
+def any_lane(condition):
+    return condition
+
+
+@numba.njit(inline="always")
 def false_like(condition):
     return False
 

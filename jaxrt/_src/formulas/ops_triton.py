@@ -108,3 +108,8 @@ def sample_weights(x, index, pieces: tl.constexpr):
     w2 = (3.0 * (u * u) * v).to(x.dtype)
     w3 = (u * u * u).to(x.dtype)
     return w0, w1, w2, w3
+
+
+@triton.jit
+def any_lane(condition):
+    return tl.max(condition.to(tl.int32), axis=0) > 0

@@ -9,6 +9,9 @@ Rules for a formula body (so that one source compiles under JAX, Numba and Trito
 
 - straight-line code over scalars (a lane): no ``if``, ``and``, ``or``, ``not`` or ``~`` on values (use
   :func:`select`, ``&``, ``|`` and comparisons), no loops over values;
+- a lane-uniform early-out, ``if any_lane(c):``, only around code whose every result is masked by ``c`` (so
+  that skipping it where ``c`` is false changes nothing): JAX always runs it, Numba skips it for its one lane,
+  Triton for a block where no lane needs it;
 - no ``/`` (Triton's is approximate): :func:`div_rn` or :func:`div`;
 - no bare float literal in arithmetic or a select (Numba would widen float32 to float64): :func:`like`;
 - ``+``, ``-``, ``*`` and comparisons are IEEE operations everywhere; a multiply feeding an add is left
@@ -24,6 +27,7 @@ import math
 __all__ = [
     "INF",
     "absolute",
+    "any_lane",
     "div",
     "div_rn",
     "dot3",
@@ -142,3 +146,8 @@ def sample_weights(x, index, pieces):
     :func:`jaxrt._src.primitives.curve._bernstein` computes them and rounded once to the float type of ``x``."""
     u = 1.0 if index == pieces else index * (1.0 / pieces)
     return (1.0 - u) ** 3, 3.0 * u * (1.0 - u) ** 2, 3.0 * u**2 * (1.0 - u), u**3
+
+
+def any_lane(condition):
+    """Whether any lane needs the branch that ``if any_lane(condition):`` guards (see the rules above)."""
+    return bool(condition)
