@@ -97,7 +97,16 @@ def _user_function(ray, candidate):
             "bounding-box geometry in a structure with keyframe motion is not covered by the CPU traversal",
         ),
         (rt.Intersector(), (_info(TRI, motion=True),), "gpu", False, 0, None),
-        (rt.Intersector(), (_info(CURVE),), "cpu", False, 0, "curves are not covered by the CPU traversal"),
+        (rt.Intersector(), (_info(CURVE),), "cpu", False, 0, None),
+        (rt.Intersector(), (_info(CURVE),), "cpu", False, 1, "curves below instances are not covered by the CPU traversal"),
+        (
+            rt.Intersector(),
+            (_info(CURVE, motion=True),),
+            "cpu",
+            False,
+            0,
+            "curves in a structure with keyframe motion are not covered by the CPU traversal",
+        ),
         (
             rt.Intersector(),
             (_info(CURVE),),
