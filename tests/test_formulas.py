@@ -544,9 +544,10 @@ CURVE_U_ATOL = 1e-4
 def _curve_case(case, far: float = 0.0, seed: int = 3):
     """A few strands of ``case`` (moved ``far`` from the origin), rays aimed within 1.5 radii of them (grazing
     ones included), and every (ray, segment) pair: ``(geometry, origin, direction, pairs)``."""
-    import jaxrt as rt
     from test_curves_primitive import aimed_rays
     from test_curves_structure import hair
+
+    import jaxrt as rt
 
     basis, count, curve_type, caps = case
     geometry = hair(seed=seed, strands=3, basis=basis, count=count, curve_type=curve_type, end_caps=caps)
@@ -677,10 +678,91 @@ def test_curve_formula_against_the_float64_reference(monkeypatch):
     for case in (CURVE_CASES[0], CURVE_CASES[4]):
         geometry, origin, direction = _curve_case(case, seed=11)
         _, _, on_numba = _curve_all(geometry, origin, direction, case)
-
-        monkeypatch.setattr(test_curves_primitive, "run", lambda *args, **kwargs: _Hits(**on_numba))
+        hits = _Hits(**on_numba)
+        monkeypatch.setattr(test_curves_primitive, "run", functools.partial(_answer, hits))
         counts = test_curves_primitive.compare(geometry, origin, direction)
         assert counts["hits"] > 10
+
+
+def test_curve_formula_in_triton_interpreter(tmp_path):
+    """The curve formula's Triton instance (Triton's interpreter, in a fresh process) equals its Numba instance
+    bit for bit on a round and a flat case (both leave every multiply-add unfused; 32 pairs each, hits
+    included)."""
+    pytest.importorskip("triton")
+    from jaxrt._src.curves import pack_segments
+    from jaxrt._src.traversal import cpu, cpu_curves
+
+    for case in CURVE_JAX_CASES:
+        geometry, origin, direction = _curve_case(case)
+        segments, flags = (np.asarray(a) for a in pack_segments(geometry))
+        # Pairs of the first rays with every segment, those that hit first.
+        r, s = 8, len(segments)
+        ri, si = np.repeat(np.arange(r), s), np.tile(np.arange(s), r)
+        _, _, numba_all = _curve_all(geometry, origin[:r], direction[:r], case)
+        order = np.argsort(~numba_all["hit"].reshape(-1), kind="stable")[:32]
+        ri, si = ri[order], si[order]
+        o, d, seg, fl = origin[ri], direction[ri], np.ascontiguousarray(segments[si]), flags[si].astype(np.int32)
+        frame = np.asarray(cpu.curve_frames(jnp.asarray(o), jnp.asarray(d)))
+        _, static = _curve_static(case)
+        n = len(o)
+        want = [np.empty(n, bool), np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.int64)]
+        params = np.asarray(cpu.curve_params(static), np.int64)
+        lo, hi = np.zeros(n, np.float32), np.full(n, np.inf, np.float32)
+        cpu_curves.pairs(seg, fl, o, frame, lo, hi, params, np.float32(np.inf), *want)
+        assert want[0].sum() >= 3
+        columns = [seg[:, k, j] for k in range(4) for j in range(4)] + [seg[:, 4, 0], seg[:, 4, 1], seg[:, 4, 2], fl]
+        columns += [seg[:, 5, j] for j in range(4)] + [o[:, 0], o[:, 1], o[:, 2]] + [frame[:, j] for j in range(10)]
+        columns += [lo, hi]
+        arrays = {f"arr_{i}": np.ascontiguousarray(c) for i, c in enumerate(columns)}
+        np.savez(tmp_path / "in.npz", static=np.asarray(static, np.float64), **arrays)
+        env = dict(os.environ, TRITON_INTERPRET="1")
+        done = subprocess.run(
+            [sys.executable, __file__, "--curve", str(tmp_path)], env=env, cwd=Path(__file__).parents[1],
+            capture_output=True, text=True, timeout=600,
+        )  # fmt: skip
+        assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+        got = np.load(tmp_path / "out.npz")
+        np.testing.assert_array_equal(got["arr_0"].astype(bool), want[0], err_msg=f"{case}: hit")
+        np.testing.assert_array_equal(got["arr_1"], want[1], err_msg=f"{case}: distance")
+        np.testing.assert_array_equal(got["arr_2"][want[0]], want[2][want[0]], err_msg=f"{case}: u")
+        np.testing.assert_array_equal(got["arr_3"][want[0]], want[3][want[0]], err_msg=f"{case}: part")
+
+
+def _triton_curve_main(folder: str) -> None:
+    """The subprocess of :func:`test_curve_formula_in_triton_interpreter`: the curve formula's ``segment`` in
+    Triton's interpreter, one lane per pair."""
+    import triton
+    import triton.language as tl
+    from test_gpu_instanced import _HostArray
+
+    data = np.load(Path(folder) / "in.npz")
+    columns = [data[f"arr_{i}"] for i in range(39)]
+    pieces, iterations, approach, tolerance, disk, sphere, flat = data["static"].tolist()
+    n = len(columns[0])
+    size = 1 << max(n - 1, 1).bit_length()
+    columns = [np.concatenate([c, np.repeat(c[-1:], size - n)]) for c in columns]
+    args = ", ".join(f"p{i}" for i in range(39))
+    loads = "".join(f"    a{i} = tl.load(p{i} + lane)\n" for i in range(39))
+    call = ", ".join(f"a{i}" for i in range(39))
+    source = (
+        f"def kernel({args}, q0, q1, q2, q3, N: tl.constexpr, PIECES: tl.constexpr, ITERATIONS: tl.constexpr, "
+        "APPROACH: tl.constexpr, TOLERANCE: tl.constexpr, DISK: tl.constexpr, SPHERE: tl.constexpr, "
+        f"FLAT: tl.constexpr):\n    lane = tl.arange(0, N)\n{loads}"
+        f"    hit, t, u, part = fn({call}, PIECES, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE, FLAT)\n"
+        "    tl.store(q0 + lane, hit.to(tl.int8))\n    tl.store(q1 + lane, t)\n    tl.store(q2 + lane, u)\n"
+        "    tl.store(q3 + lane, part.to(tl.int32))\n"
+    )
+    filename = "<test_formulas curve.segment>"
+    linecache.cache[filename] = (len(source), None, source.splitlines(True), filename)
+    namespace = {"fn": formulas.instance("curve", "triton").segment, "tl": tl}
+    exec(compile(source, filename, "exec"), namespace)
+    outs = [np.zeros(size, np.int8), np.zeros(size, np.float32), np.zeros(size, np.float32), np.zeros(size, np.int32)]
+    triton.jit(namespace["kernel"])[(1,)](
+        *(_HostArray(np.ascontiguousarray(c)) for c in columns), *(_HostArray(o) for o in outs), N=size,
+        PIECES=int(pieces), ITERATIONS=int(iterations), APPROACH=int(approach), TOLERANCE=float(tolerance),
+        DISK=bool(disk), SPHERE=bool(sphere), FLAT=int(flat),
+    )  # fmt: skip
+    np.savez(Path(folder) / "out.npz", *(o[:n] for o in outs))
 
 
 class _Hits:
@@ -688,5 +770,13 @@ class _Hits:
         self.hit, self.distance, self.u, self.part = hit, distance, u, part
 
 
+def _answer(hits: _Hits, *args, **kwargs) -> _Hits:
+    """Stands in for ``test_curves_primitive.run``: the formula's answers, computed beforehand."""
+    return hits
+
+
 if __name__ == "__main__":
-    _triton_main(sys.argv[1])
+    if sys.argv[1] == "--curve":
+        _triton_curve_main(sys.argv[2])
+    else:
+        _triton_main(sys.argv[1])

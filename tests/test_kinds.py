@@ -98,7 +98,14 @@ def _user_function(ray, candidate):
         ),
         (rt.Intersector(), (_info(TRI, motion=True),), "gpu", False, 0, None),
         (rt.Intersector(), (_info(CURVE),), "cpu", False, 0, None),
-        (rt.Intersector(), (_info(CURVE),), "cpu", False, 1, "curves below instances are not covered by the CPU traversal"),
+        (
+            rt.Intersector(),
+            (_info(CURVE),),
+            "cpu",
+            False,
+            1,
+            "curves below instances are not covered by the CPU traversal",
+        ),
         (
             rt.Intersector(),
             (_info(CURVE, motion=True),),

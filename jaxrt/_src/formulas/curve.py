@@ -484,7 +484,9 @@ def round_test(
             u = select(second, u_b, u_a)
             # Newton failed but the curve is touched: the chord's hit (not where Newton is leaving the segment).
             leaving = (u <= 0) | (u >= 1)
-            fallback = chord_ok & touches & ((conv_a | conv_b) == 0) & (leaving == 0) & (chord_t >= lo) & (chord_t <= hi)
+            fallback = (
+                chord_ok & touches & ((conv_a | conv_b) == 0) & (leaving == 0) & (chord_t >= lo) & (chord_t <= hi)
+            )
             tube_ok = tube | fallback
             tube_t = select(tube, t, chord_t)
             tube_u = clip(select(tube, u, chord_u), zero, one)

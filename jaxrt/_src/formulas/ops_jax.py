@@ -65,9 +65,11 @@ def tiny_of(x):
 
 @functools.cache
 def _weights(pieces: int) -> np.ndarray:
-    from jaxrt._src.primitives.curve import _bernstein
-
-    return _bernstein(np.linspace(0.0, 1.0, pieces + 1))
+    """The cubic Bernstein weights at ``np.linspace(0, 1, pieces + 1)`` in float64, computed as
+    ``jaxrt._src.primitives.curve._bernstein`` computes them (the same NumPy expression, so the same floats)."""
+    u = np.linspace(0.0, 1.0, pieces + 1)[:, None]
+    k = np.arange(4)
+    return np.array([1, 3, 3, 1]) * u**k * (1 - u) ** (3 - k)
 
 
 def sample_weights(x, index, pieces):

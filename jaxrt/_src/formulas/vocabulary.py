@@ -129,7 +129,6 @@ def dot3(ax, ay, az, bx, by, bz):
     return (ax * bx + ay * by) + az * bz
 
 
-
 def epsilon_of(x):
     """The machine epsilon of the float type of ``x`` (``2^-23`` for float32)."""
     return 2.0**-52

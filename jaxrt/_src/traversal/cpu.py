@@ -15,7 +15,10 @@ The intersector picks this path (``backend="auto"`` or ``"cpu"``) when :func:`un
 instanced at any depth, bounding boxes with the built-in sphere, disk and capped cylinder functions (their
 distances equal the portable path's to rounding: XLA contracts some of their multiply-adds, the loop none),
 primitive keyframe motion of triangles in a primitive structure (node boxes and triangles blended at each
-ray's time as the portable step blends them), nearest and any hit, the ``K`` nearest hits (``max_hits``) and
+ray's time as the portable step blends them), round and flat curves in a primitive structure (the shared curve
+formula, :mod:`jaxrt._src.traversal.cpu_curves`; distances equal the portable path's to a few ulps, and the
+traversal also reports each curve hit's parameter and part, so the result fields need not test it again in
+XLA), nearest and any hit, the ``K`` nearest hits (``max_hits``) and
 counting, cull modes and windings, ray intervals, ray and instance masks, disabled rays and the stats
 counters, in float32 or float64.
 

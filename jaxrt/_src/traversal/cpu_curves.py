@@ -28,6 +28,7 @@ _flat_test = _curve.flat_test
 
 __all__ = ["curve_hit", "curve_leaf", "nearest_parts", "pairs"]
 
+
 @numba.njit(cache=True)
 def curve_hit(segments, flags, leaf, ox, oy, oz, frame, ray, t_min, t_max, params, at, inf):
     """``(accepted, distance, u, part)`` of leaf ``leaf``'s segment (``segments[leaf]``, flags ``flags[leaf]``)

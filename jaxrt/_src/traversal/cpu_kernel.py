@@ -14,7 +14,8 @@ child boxes of a node in one vector slab test (:func:`_box_pair`, on the node ro
 parallel to no axis.
 
 The leaf and box tests are the shared formulas of :mod:`jaxrt._src.formulas` (slab test, shear, watertight
-triangle, analytic shapes) instantiated for Numba; this module holds the loop and the memory layout around them.
+triangle, analytic shapes, curves through :mod:`jaxrt._src.traversal.cpu_curves`) instantiated for Numba; this
+module holds the loop and the memory layout around them.
 
 Same decisions to the bit: every value the portable path compares is computed here with the same float
 operations, in the same order and precision (the geometry's dtype). Two details make that hold (both in
