@@ -458,7 +458,7 @@ def _arguments(
         time = jnp.zeros(origin.shape[:-1], origin.dtype)
     if curves is None:
         segments, curve_flags = jnp.zeros((1, 6, 4), dtype), jnp.zeros((1,), jnp.int32)
-        frame = jnp.zeros((origin.shape[0], 0), origin.dtype)
+        frame = jnp.zeros((origin.shape[0], 1), origin.dtype)  # (a column: a zero-size array has no reshape)
     else:
         segments, curve_flags = curves.segments.astype(dtype), curves.flags.astype(jnp.int32)
         frame = curve_frames(origin, direction)
