@@ -1,10 +1,11 @@
 """Leaf formulas written once, instantiated for JAX, Numba and Triton.
 
-A formula module (:mod:`.box`, :mod:`.triangle`, :mod:`.analytic`, :mod:`.point_triangle`, :mod:`.curve`) is plain Python over
-scalars that imports its operations from :mod:`.vocabulary`. :func:`instance` executes the module's source once
-more per backend, in a fresh module whose operation names are then bound to that backend's namespace
-(:mod:`.ops_jax`, :mod:`.ops_numba`, :mod:`.ops_triton`), and wraps every function the source defines with the
-backend's compiler: none for JAX, ``numba.njit`` for the CPU traversal, ``triton.jit`` for the GPU kernels.
+A formula module (:mod:`.box`, :mod:`.triangle`, :mod:`.analytic`, :mod:`.point_triangle`, :mod:`.curve`) is
+plain Python over scalars that imports its operations from :mod:`.vocabulary`. :func:`instance` executes the
+module's source once more per backend, in a fresh module whose operation names are then bound to that
+backend's namespace (:mod:`.ops_jax`, :mod:`.ops_numba`, :mod:`.ops_triton`), and wraps every function the
+source defines with the backend's compiler: none for JAX, ``numba.njit`` for the CPU traversal (inlined at
+Numba's IR level unless the module sets ``NUMBA_INLINE = False``), ``triton.jit`` for the GPU kernels.
 Calls between formulas resolve through the module's globals, so they reach the wrapped versions; Triton and
 Numba read a function's globals when they compile it, so they see the backend's operations.
 
