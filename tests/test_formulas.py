@@ -21,6 +21,7 @@ both about multiply-adds, which the backends evaluate differently on purpose:
 
 from __future__ import annotations
 
+import functools
 import linecache
 import os
 import subprocess
@@ -507,18 +508,296 @@ def test_numba_vector_slab_test_makes_the_formula_decisions(results):
     assert 20 < got_hit[:, 0].sum() < len(ray) and got_hit[:, 1].any()  # the inputs exercise both outcomes
 
 
+#: The names a formula may loop or branch on: static options and the loop counters over them.
+STATIC_NAMES = {"pieces", "iterations", "approach", "disk", "sphere", "flat", "i", "range"}
+
+
 def test_formulas_use_the_vocabulary_only():
-    """The formula sources follow the vocabulary's rules: no ``/`` and no branch on a value."""
+    """The formula sources follow the vocabulary's rules: no ``/`` and no branch or loop on a value (loops,
+    branches and divisions on static options, and ``if any_lane(c):``, are allowed)."""
     import ast
     import inspect
+
+    def static(node) -> bool:
+        names = {n.id for n in ast.walk(node) if isinstance(n, ast.Name)}
+        return names <= STATIC_NAMES and not any(isinstance(n, ast.Attribute) for n in ast.walk(node))
 
     for module in formulas.FORMULAS:
         tree = ast.parse(inspect.getsource(__import__(f"jaxrt._src.formulas.{module}", fromlist=["x"])))
         for node in ast.walk(tree):
-            assert not isinstance(node, (ast.If, ast.IfExp, ast.BoolOp, ast.While, ast.For)), (module, node.lineno)
-            assert not (isinstance(node, ast.BinOp) and isinstance(node.op, ast.Div)), (module, node.lineno)
+            assert not isinstance(node, (ast.IfExp, ast.BoolOp, ast.While)), (module, node.lineno)
+            if isinstance(node, ast.If):
+                early_out = isinstance(node.test, ast.Call) and getattr(node.test.func, "id", "") == "any_lane"
+                assert early_out or static(node.test), (module, node.lineno)
+            if isinstance(node, ast.For):
+                assert static(node.iter), (module, node.lineno)
+            # (a division of static options, such as 1.0 / pieces, is a constant computed in Python)
+            assert not (isinstance(node, ast.BinOp) and isinstance(node.op, ast.Div) and not static(node)), (
+                module,
+                node.lineno,
+            )
             assert not (isinstance(node, ast.UnaryOp) and isinstance(node.op, (ast.Not, ast.Invert))), module
 
 
+# --- the curve formula -----------------------------------------------------------------------------------------
+
+#: (basis, control points, curve type, end caps) of the curve formula's cases.
+CURVE_CASES = [
+    ("catmull_rom", 4, "round", "sphere"),
+    ("catmull_rom", 4, "flat", "disk"),
+    ("bezier", 3, "round", "disk"),
+    ("linear", 2, "round", "sphere"),
+    ("bspline", 3, "flat", "sphere"),
+]
+#: The cases whose JAX instance is compared too (each compiles a large unrolled program).
+CURVE_JAX_CASES = CURVE_CASES[:2]
+#: Curve distances and parameters: relative bound between the formula and ``curve.intersect`` (8 float32 eps,
+#: the distance tolerance of ``tests/reference.py``): XLA contracts and reorders some of ``curve.intersect``'s
+#: sums (``_norm2``, ``jnp.dot``, the multiply-adds), the formula's Numba instance none.
+CURVE_RTOL = 8 * float(np.finfo(np.float32).eps)
+#: Curve parameters: absolute bound (measured up to 8e-6): the test stops Newton within its tolerance of the
+#: root (``CurveOptions.tolerance``), and the unconverged iterates amplify rounding differences where the entry
+#: is ill conditioned in ``u``; 20 times tighter than the float64 reference's bound on ``u`` (``PARAMETER``
+#: of ``tests/test_curves_primitive.py``).
+CURVE_U_ATOL = 1e-4
+
+
+def _curve_case(case, far: float = 0.0, seed: int = 3):
+    """A few strands of ``case`` (moved ``far`` from the origin), rays aimed within 1.5 radii of them (grazing
+    ones included), and every (ray, segment) pair: ``(geometry, origin, direction, pairs)``."""
+    from test_curves_primitive import aimed_rays
+    from test_curves_structure import hair
+
+    import jaxrt as rt
+
+    basis, count, curve_type, caps = case
+    geometry = hair(seed=seed, strands=3, basis=basis, count=count, curve_type=curve_type, end_caps=caps)
+    if far:
+        points = np.asarray(geometry.control_points) + np.float32(far) * np.array([1.0, -0.37, 0.61], np.float32)
+        geometry = rt.CurveGeometry(points, geometry.radii, geometry.indices, basis=basis, control_point_count=count,
+                                    curve_type=curve_type, end_caps=caps)  # fmt: skip
+    origin, direction = aimed_rays(np.random.default_rng(seed + 1), geometry, 24)
+    return geometry, origin, direction
+
+
+def _curve_static(case):
+    from jaxrt._src.primitives import curve as primitive
+
+    basis, count, curve_type, caps = case
+    options = primitive.CurveOptions(pieces=1, iterations=0) if basis == "linear" else primitive.DEFAULT_OPTIONS
+    code = {"none": primitive.CAP_NONE, "disk": primitive.CAP_DISK, "sphere": primitive.CAP_SPHERE}[caps]
+    types = (primitive.FLAT,) if curve_type == "flat" else (primitive.ROUND,)
+    config = dict(curve_types=types, end_caps=(code,), options=options)
+    static = (options.pieces, options.iterations, options.approach_iterations, options.tolerance)
+    return config, (*static, code == primitive.CAP_DISK, code == primitive.CAP_SPHERE, int(curve_type == "flat"))
+
+
+def _curve_all(geometry, origin, direction, case, segments=None, flags=None):
+    """``curve.intersect`` (the JAX spec), the formula's JAX instance and its Numba instance on every (ray,
+    segment) pair: three dicts of ``(R, S)`` arrays ``hit, distance, u, part``."""
+    from jaxrt._src.curves import pack_segments
+    from jaxrt._src.traversal import cpu, cpu_curves
+
+    if segments is None:
+        segments, flags = (np.asarray(a) for a in pack_segments(geometry))
+    r, s = len(origin), len(segments)
+    ri, si = np.repeat(np.arange(r), s), np.tile(np.arange(s), r)
+    pad = -len(ri) % 256  # padded (with the first pair) to share compiled programs between cases
+    ri, si = np.concatenate([ri, np.zeros(pad, int)]), np.concatenate([si, np.zeros(pad, int)])
+    o, d, seg, fl = origin[ri], direction[ri], np.ascontiguousarray(segments[si]), flags[si].astype(np.int32)
+    n = len(o)
+    lo, hi = np.zeros(n, np.float32), np.full(n, np.inf, np.float32)
+    config, static = _curve_static(case)
+
+    spec = _spec(tuple(config.items()))(o, d, seg, fl)
+    frame = np.asarray(cpu.curve_frames(jnp.asarray(o), jnp.asarray(d)))
+    columns = [seg[:, k, j] for k in range(4) for j in range(4)] + [seg[:, 4, 0], seg[:, 4, 1], seg[:, 4, 2], fl]
+    columns += [seg[:, 5, j] for j in range(4)] + [o[:, 0], o[:, 1], o[:, 2]] + [frame[:, j] for j in range(10)]
+    out_jax = (
+        _jax_segment(static)(*(jnp.asarray(c) for c in columns), lo, hi)
+        if case in CURVE_JAX_CASES
+        else (np.zeros(n, bool),) * 4
+    )
+    out_numba = [np.empty(n, bool), np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.int64)]
+    params = np.asarray(cpu.curve_params(static), np.int64)
+    cpu_curves.pairs(seg, fl, o, frame, lo, hi, params, np.float32(np.inf), *out_numba)
+    names = ("hit", "distance", "u", "part")
+    shape = lambda a: np.asarray(a)[: r * s].reshape(r, s)  # noqa: E731
+    return (
+        {k: shape(getattr(spec, k)) for k in names},
+        {k: shape(a) for k, a in zip(names, out_jax, strict=True)},
+        {k: shape(a) for k, a in zip(names, out_numba, strict=True)},
+    )
+
+
+@functools.cache
+def _jax_segment(static: tuple):
+    segment = formulas.instance("curve", "jax").segment
+    return jax.jit(lambda *c: segment(*c, *static))
+
+
+@functools.cache
+def _spec(config: tuple):
+    from jaxrt._src.primitives import curve as primitive
+
+    def one(o, d, seg, f):
+        ray = primitive.curve_ray(o, d)
+        return primitive.intersect(ray, seg, f, jnp.float32(0), jnp.float32(np.inf), **dict(config))
+
+    return jax.jit(jax.vmap(one))
+
+
+def _assert_same_curve_hits(got: dict, want: dict, what: str) -> None:
+    np.testing.assert_array_equal(got["hit"], want["hit"], err_msg=f"{what}: hit")
+    hit = want["hit"]
+    np.testing.assert_array_equal(got["part"][hit], want["part"][hit], err_msg=f"{what}: part")
+    np.testing.assert_allclose(got["distance"], want["distance"], rtol=CURVE_RTOL, atol=0, err_msg=f"{what}: t")
+    np.testing.assert_allclose(got["u"][hit], want["u"][hit], rtol=0, atol=CURVE_U_ATOL, err_msg=f"{what}: u")
+
+
+@pytest.mark.parametrize("case", CURVE_CASES, ids=lambda c: "-".join(map(str, c)))
+def test_curve_formula_equals_the_jax_spec(case):
+    """The curve formula's Numba instance (and in :data:`CURVE_JAX_CASES` its JAX instance) against
+    ``curve.intersect`` on every (ray, segment) pair of a few strands: the same hits and parts, distances within :data:`CURVE_RTOL`, parameters within
+    :data:`CURVE_U_ATOL`."""
+    geometry, origin, direction = _curve_case(case)
+    spec, on_jax, on_numba = _curve_all(geometry, origin, direction, case)
+    assert spec["hit"].sum() > 10
+    if case in CURVE_JAX_CASES:
+        _assert_same_curve_hits(on_jax, spec, "jax")
+    _assert_same_curve_hits(on_numba, spec, "numba")
+
+
+def test_curve_formula_hard_cases():
+    """Far from the origin (about 1e3 and 1e4; the rays of :func:`_curve_case` pass within 1.5 radii of the
+    centre lines, so many graze the tubes) and degenerate segments (all control points equal, zero radius, a
+    zero start tangent): the formula makes the spec's decisions."""
+    case = ("catmull_rom", 4, "round", "sphere")
+    for far in (1.3e3, 1.1e4):
+        geometry, origin, direction = _curve_case(case, far=far, seed=5)
+        spec, on_jax, on_numba = _curve_all(geometry, origin, direction, case)
+        assert spec["hit"].sum() > 5, far
+        _assert_same_curve_hits(on_numba, spec, f"numba at {far}")
+        _assert_same_curve_hits(on_jax, spec, f"jax at {far}")
+    from jaxrt._src.curves import pack_segments
+
+    geometry, origin, direction = _curve_case(case, seed=7)
+    segments, flags = (np.array(a) for a in pack_segments(geometry))
+    segments[0, :4, :3] = 0.0  # a point (every control point at the base point)
+    segments[1, :4, 3] = 0.0  # zero radius
+    segments[2, 1, :] = segments[2, 0, :]  # a zero start tangent
+    spec, on_jax, on_numba = _curve_all(geometry, origin, direction, case, segments, flags)
+    _assert_same_curve_hits(on_numba, spec, "degenerate")
+    _assert_same_curve_hits(on_jax, spec, "degenerate, jax")
+
+
+def test_curve_formula_against_the_float64_reference(monkeypatch):
+    """The Numba instance on every (ray, segment) pair against the float64 reference of ``jaxrt.bench.curves``,
+    with the bounds of ``tests/test_curves_primitive.py`` (its ``compare``, fed the formula's answers)."""
+    import test_curves_primitive
+
+    for case in (CURVE_CASES[0], CURVE_CASES[4]):
+        geometry, origin, direction = _curve_case(case, seed=11)
+        _, _, on_numba = _curve_all(geometry, origin, direction, case)
+        hits = _Hits(**on_numba)
+        monkeypatch.setattr(test_curves_primitive, "run", functools.partial(_answer, hits))
+        counts = test_curves_primitive.compare(geometry, origin, direction)
+        assert counts["hits"] > 10
+
+
+def test_curve_formula_in_triton_interpreter(tmp_path):
+    """The curve formula's Triton instance (Triton's interpreter, in a fresh process) equals its Numba instance
+    bit for bit on a round and a flat case (both leave every multiply-add unfused; 32 pairs each, hits
+    included)."""
+    pytest.importorskip("triton")
+    from jaxrt._src.curves import pack_segments
+    from jaxrt._src.traversal import cpu, cpu_curves
+
+    for case in CURVE_JAX_CASES:
+        geometry, origin, direction = _curve_case(case)
+        segments, flags = (np.asarray(a) for a in pack_segments(geometry))
+        # Pairs of the first rays with every segment, those that hit first.
+        r, s = 8, len(segments)
+        ri, si = np.repeat(np.arange(r), s), np.tile(np.arange(s), r)
+        _, _, numba_all = _curve_all(geometry, origin[:r], direction[:r], case)
+        order = np.argsort(~numba_all["hit"].reshape(-1), kind="stable")[:32]
+        ri, si = ri[order], si[order]
+        o, d, seg, fl = origin[ri], direction[ri], np.ascontiguousarray(segments[si]), flags[si].astype(np.int32)
+        frame = np.asarray(cpu.curve_frames(jnp.asarray(o), jnp.asarray(d)))
+        _, static = _curve_static(case)
+        n = len(o)
+        want = [np.empty(n, bool), np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.int64)]
+        params = np.asarray(cpu.curve_params(static), np.int64)
+        lo, hi = np.zeros(n, np.float32), np.full(n, np.inf, np.float32)
+        cpu_curves.pairs(seg, fl, o, frame, lo, hi, params, np.float32(np.inf), *want)
+        assert want[0].sum() >= 3
+        columns = [seg[:, k, j] for k in range(4) for j in range(4)] + [seg[:, 4, 0], seg[:, 4, 1], seg[:, 4, 2], fl]
+        columns += [seg[:, 5, j] for j in range(4)] + [o[:, 0], o[:, 1], o[:, 2]] + [frame[:, j] for j in range(10)]
+        columns += [lo, hi]
+        arrays = {f"arr_{i}": np.ascontiguousarray(c) for i, c in enumerate(columns)}
+        np.savez(tmp_path / "in.npz", static=np.asarray(static, np.float64), **arrays)
+        env = dict(os.environ, TRITON_INTERPRET="1")
+        done = subprocess.run(
+            [sys.executable, __file__, "--curve", str(tmp_path)], env=env, cwd=Path(__file__).parents[1],
+            capture_output=True, text=True, timeout=600,
+        )  # fmt: skip
+        assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+        got = np.load(tmp_path / "out.npz")
+        np.testing.assert_array_equal(got["arr_0"].astype(bool), want[0], err_msg=f"{case}: hit")
+        np.testing.assert_array_equal(got["arr_1"], want[1], err_msg=f"{case}: distance")
+        np.testing.assert_array_equal(got["arr_2"][want[0]], want[2][want[0]], err_msg=f"{case}: u")
+        np.testing.assert_array_equal(got["arr_3"][want[0]], want[3][want[0]], err_msg=f"{case}: part")
+
+
+def _triton_curve_main(folder: str) -> None:
+    """The subprocess of :func:`test_curve_formula_in_triton_interpreter`: the curve formula's ``segment`` in
+    Triton's interpreter, one lane per pair."""
+    import triton
+    import triton.language as tl
+    from test_gpu_instanced import _HostArray
+
+    data = np.load(Path(folder) / "in.npz")
+    columns = [data[f"arr_{i}"] for i in range(39)]
+    pieces, iterations, approach, tolerance, disk, sphere, flat = data["static"].tolist()
+    n = len(columns[0])
+    size = 1 << max(n - 1, 1).bit_length()
+    columns = [np.concatenate([c, np.repeat(c[-1:], size - n)]) for c in columns]
+    args = ", ".join(f"p{i}" for i in range(39))
+    loads = "".join(f"    a{i} = tl.load(p{i} + lane)\n" for i in range(39))
+    call = ", ".join(f"a{i}" for i in range(39))
+    source = (
+        f"def kernel({args}, q0, q1, q2, q3, N: tl.constexpr, PIECES: tl.constexpr, ITERATIONS: tl.constexpr, "
+        "APPROACH: tl.constexpr, TOLERANCE: tl.constexpr, DISK: tl.constexpr, SPHERE: tl.constexpr, "
+        f"FLAT: tl.constexpr):\n    lane = tl.arange(0, N)\n{loads}"
+        f"    hit, t, u, part = fn({call}, PIECES, ITERATIONS, APPROACH, TOLERANCE, DISK, SPHERE, FLAT)\n"
+        "    tl.store(q0 + lane, hit.to(tl.int8))\n    tl.store(q1 + lane, t)\n    tl.store(q2 + lane, u)\n"
+        "    tl.store(q3 + lane, part.to(tl.int32))\n"
+    )
+    filename = "<test_formulas curve.segment>"
+    linecache.cache[filename] = (len(source), None, source.splitlines(True), filename)
+    namespace = {"fn": formulas.instance("curve", "triton").segment, "tl": tl}
+    exec(compile(source, filename, "exec"), namespace)
+    outs = [np.zeros(size, np.int8), np.zeros(size, np.float32), np.zeros(size, np.float32), np.zeros(size, np.int32)]
+    triton.jit(namespace["kernel"])[(1,)](
+        *(_HostArray(np.ascontiguousarray(c)) for c in columns), *(_HostArray(o) for o in outs), N=size,
+        PIECES=int(pieces), ITERATIONS=int(iterations), APPROACH=int(approach), TOLERANCE=float(tolerance),
+        DISK=bool(disk), SPHERE=bool(sphere), FLAT=int(flat),
+    )  # fmt: skip
+    np.savez(Path(folder) / "out.npz", *(o[:n] for o in outs))
+
+
+class _Hits:
+    def __init__(self, hit, distance, u, part):
+        self.hit, self.distance, self.u, self.part = hit, distance, u, part
+
+
+def _answer(hits: _Hits, *args, **kwargs) -> _Hits:
+    """Stands in for ``test_curves_primitive.run``: the formula's answers, computed beforehand."""
+    return hits
+
+
 if __name__ == "__main__":
-    _triton_main(sys.argv[1])
+    if sys.argv[1] == "--curve":
+        _triton_curve_main(sys.argv[2])
+    else:
+        _triton_main(sys.argv[1])

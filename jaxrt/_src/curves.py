@@ -611,7 +611,9 @@ class CurveLeaves:
         return hit.hit & (leaves >= 0), hit.distance
 
 
-def curve_hit_fields(leaf_curve, leaf_curve_flags, leaf, hit, origin, direction, t_min, t_max, distance, config):
+def curve_hit_fields(
+    leaf_curve, leaf_curve_flags, leaf, hit, origin, direction, t_min, t_max, distance, config, exact=None
+):
     """For every ray, whether its hit is a curve, that hit's differentiable ``(distance, u)``, and the part of
     the segment it lies on (a ``PART_*`` code of :mod:`jaxrt._src.primitives.curve`).
 
@@ -619,7 +621,8 @@ def curve_hit_fields(leaf_curve, leaf_curve_flags, leaf, hit, origin, direction,
     and ``direction`` are the ray in the hit's object space. The traversal only picks the leaf: the chosen segment is tested again
     (exactly, for ``u``), then :func:`jaxrt._src.primitives.curve.smooth_hit` polishes a tube or ribbon hit
     to its root and attaches derivatives with respect to the segment's control points and radii and to the
-    ray.
+    ray. ``exact``: the exact test's ``(u, part)`` for every ray where the traversal computed them (the CPU
+    traversal, with the shared curve formula), which then replace the test made here.
     """
     stop = jax.lax.stop_gradient
     flags = leaf_curve_flags[leaf]
@@ -632,12 +635,14 @@ def curve_hit_fields(leaf_curve, leaf_curve_flags, leaf, hit, origin, direction,
     ray_origin = jnp.where(is_curve[:, None], origin, jnp.array([0.5, 0.0, -1.0], origin.dtype))
     ray_direction = jnp.where(is_curve[:, None], direction, unit_z)
 
-    def exact(o, d, s, f, lo, hi):
+    def test(o, d, s, f, lo, hi):
         return primitive.intersect(primitive.curve_ray(o, d), s, f, lo, hi, **config)
 
-    again = jax.vmap(exact)(stop(ray_origin), stop(ray_direction), stop(segment), flags, t_min, t_max)
+    if exact is None:
+        again = jax.vmap(test)(stop(ray_origin), stop(ray_direction), stop(segment), flags, t_min, t_max)
+        exact = again.u, again.part
     exact_t = jnp.where(is_curve, distance, 0.5)
-    part = jnp.where(is_curve, again.part, primitive.PART_TUBE)
-    u = jnp.where(is_curve, again.u, 0.5)
+    part = jnp.where(is_curve, exact[1], primitive.PART_TUBE)
+    u = jnp.where(is_curve, stop(exact[0]), 0.5)
     t, u = jax.vmap(primitive.smooth_hit)(ray_origin, ray_direction, segment, part, u, exact_t, t_min, t_max)
     return is_curve, t, u, part

@@ -194,10 +194,13 @@ def hit_fields(
     chain: jax.Array,
     *,
     time: jax.Array | None = None,
+    curve: Any = None,
 ) -> dict[str, Any]:
     """The hit fields of rays ``(n,)`` whose traversal found ``leaf`` (``-1``: a miss) at ``distance`` through
     the instance ``chain`` ``(n, levels)``; ``time`` ``(n,)`` with keyframe motion: moving primitives are
-    re-intersected as blended at each ray's time (differentiable in the keyframes and the time)."""
+    re-intersected as blended at each ray's time (differentiable in the keyframes and the time); ``curve``:
+    the traversal's exact ``(u, part)`` of curve hits (:class:`~jaxrt._src.traversal.scene.TraversalResult`),
+    or ``None`` to test them again here."""
     if time is not None and view.leaves.motion is not None:
         view = view.at(view.keyframe_position(time))
 
@@ -216,8 +219,9 @@ def hit_fields(
     if CURVE.name in kinds:  # curve hits: re-tested (in object space) differentiably
         config = leaf_tests.curve_configuration(intersector, view)
         is_curve, curve_t, curve_u, curve_part = curve_support.curve_hit_fields(
-            leaves.curve, leaves.curve_flags, leaf, hit, object_origin, object_direction, t_min, t_max, distance, config
-        )
+            leaves.curve, leaves.curve_flags, leaf, hit, object_origin, object_direction, t_min, t_max, distance, config,
+            exact=curve,
+        )  # fmt: skip
         hit = hit & ~is_curve
         kind = jnp.where(is_curve, int(IntersectionType.CURVE), kind)
         exact_distance = jnp.where(is_curve, curve_t, exact_distance)

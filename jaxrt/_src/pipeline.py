@@ -202,6 +202,14 @@ def _trace_waves(intersector: Any, view: SceneView, rays: TraversalRays) -> Trav
     )
 
 
+def _curve_leaves(intersector: Any, view: SceneView, backend: str) -> Any:
+    """The curve leaves as the compiled traversal of ``backend`` reads them (rows and static options)."""
+    leaves = gpu.curve_leaves(view, leaf_tests.curve_configuration(intersector, view))
+    if backend == "cpu":
+        return cpu.CurveLeaves(view.leaves.curve, view.leaves.curve_flags, leaves.options)
+    return leaves
+
+
 def trace(intersector: Any, view: SceneView, rays: TraversalRays, host: Any = None) -> TraversalResult:
     """Run the traversal the intersector and scene call for (a compiled one where it covers them). ``host``:
     the addresses the CPU traversal may read the scene from (:func:`jaxrt._src.traversal.cpu.host_scene`)."""
@@ -216,8 +224,8 @@ def trace(intersector: Any, view: SceneView, rays: TraversalRays, host: Any = No
         moving = {}  # keyframe motion (GPU kernel only): each ray's time and the triangle keyframes
         if view.layout.motion:
             moving = dict(time=detached(rays.time), leaf_motion=gpu.leaf_motion(view))
-        if backend == "gpu" and CURVE.name in view.kinds:  # curves: their rows and the static test options
-            moving.update(curves=gpu.curve_leaves(view, leaf_tests.curve_configuration(intersector, view)))
+        if CURVE.name in view.kinds:  # curves: their rows and the static test options
+            moving.update(curves=_curve_leaves(intersector, view, backend))
         if intersector.max_hits is not None or intersector.counts_all:
             moving.update(max_hits=0 if intersector.counts_all else intersector.max_hits)
             moving.update(count_all=intersector.counts_all)
@@ -262,7 +270,14 @@ def _intersect_jit(intersector: Any, rays: Ray, structure: Any, host: Any = None
     moving = view.layout.motion
     if intersector.max_hits is None:
         fields = result_fields.hit_fields(
-            intersector, view, *geometry, found.leaf, found.distance, found.instances, time=ray.time if moving else None
+            intersector,
+            view,
+            *geometry,
+            found.leaf,
+            found.distance,
+            found.instances,
+            time=ray.time if moving else None,
+            curve=found.curve,
         )
     else:  # the same fields for each of the K hits, on an axis after the ray axis
         k = intersector.max_hits
@@ -373,4 +388,5 @@ def cpu_kernel_arguments(structure: Any, rays: Ray, intersector: Any) -> tuple[t
         count_all=intersector.counts_all,
         analytic=analytic,
         leaf_motion=gpu.leaf_motion(view),
+        curves=_curve_leaves(intersector, view, "cpu") if CURVE.name in view.kinds else None,
     )

@@ -1,11 +1,11 @@
 """Leaf formulas written once, instantiated for JAX, Numba and Triton.
 
-A formula module (:mod:`.box`, :mod:`.triangle`, :mod:`.analytic`, :mod:`.point_triangle`, :mod:`.sphere`) is
-plain Python over scalars that imports its operations from :mod:`.vocabulary`. :func:`instance` executes the
-module's source once more per backend, in a fresh module whose operation names are then bound to that backend's
-namespace (:mod:`.ops_jax`, :mod:`.ops_numba`, :mod:`.ops_triton`), and wraps every function the source defines
-with the backend's compiler: none for JAX, ``numba.njit`` for the CPU traversal, ``triton.jit`` for the GPU
-kernels.
+A formula module (:mod:`.box`, :mod:`.triangle`, :mod:`.analytic`, :mod:`.point_triangle`, :mod:`.sphere`,
+:mod:`.curve`) is plain Python over scalars that imports its operations from :mod:`.vocabulary`. :func:`instance`
+executes the module's source once more per backend, in a fresh module whose operation names are then bound to
+that backend's namespace (:mod:`.ops_jax`, :mod:`.ops_numba`, :mod:`.ops_triton`), and wraps every function the
+source defines with the backend's compiler: none for JAX, ``numba.njit`` for the CPU traversal (inlined at
+Numba's IR level unless the module sets ``NUMBA_INLINE = False``), ``triton.jit`` for the GPU kernels.
 Calls between formulas resolve through the module's globals, so they reach the wrapped versions; Triton and
 Numba read a function's globals when they compile it, so they see the backend's operations.
 
@@ -31,17 +31,19 @@ __all__ = ["BACKENDS", "FORMULAS", "instance", "source_digest"]
 #: The backends a formula is instantiated for.
 BACKENDS = ("jax", "numba", "triton")
 #: The formula modules.
-FORMULAS = ("box", "triangle", "analytic", "point_triangle", "sphere")
+FORMULAS = ("box", "triangle", "analytic", "point_triangle", "sphere", "curve")
 
 
-def _compiler(backend: str) -> Callable[[Callable], Callable]:
+def _compiler(backend: str, inline: bool = True) -> Callable[[Callable], Callable]:
     if backend == "jax":
         return lambda fn: fn
     if backend == "numba":
         import numba
 
-        # Inlined at Numba's IR level into the traversal loop (whose machine code is cached on disk).
-        return lambda fn: numba.njit(inline="always")(fn)
+        # Inlined at Numba's IR level into the traversal loop (whose machine code is cached on disk); a module
+        # with ``NUMBA_INLINE = False`` (large formulas, whose IR inlining takes long to compile) is left to
+        # LLVM, which inlines what is worth it.
+        return (lambda fn: numba.njit(inline="always")(fn)) if inline else numba.njit
     if backend == "triton":
         import triton
 
@@ -58,8 +60,8 @@ def instance(module: str, backend: str) -> types.ModuleType:
     """
     if module not in FORMULAS:
         raise ValueError(f"formulas.instance: module must be one of {FORMULAS}, got {module!r}")
-    compiler = _compiler(backend)
     source_module = importlib.import_module(f"{__name__}.{module}")
+    compiler = _compiler(backend, getattr(source_module, "NUMBA_INLINE", True))
     source = inspect.getsource(source_module)
     filename = f"<jaxrt.formulas.{module}:{backend}>"
     linecache.cache[filename] = (len(source), None, source.splitlines(True), filename)

@@ -64,6 +64,50 @@ def _like(x, value):
     return lambda x, value: np.float64(value)
 
 
+def epsilon_of(x):
+    """The machine epsilon of ``x``'s float type (typed by the overload below)."""
+    return np.finfo(np.float64).eps
+
+
+@overload(epsilon_of, inline="always")
+def _epsilon_of(x):
+    if x == types.float32:
+        eps32 = np.float32(np.finfo(np.float32).eps)
+        return lambda x: eps32
+    eps64 = np.float64(np.finfo(np.float64).eps)
+    return lambda x: eps64
+
+
+def tiny_of(x):
+    """The smallest positive normal number of ``x``'s float type (typed by the overload below)."""
+    return np.finfo(np.float64).tiny
+
+
+@overload(tiny_of, inline="always")
+def _tiny_of(x):
+    if x == types.float32:
+        tiny32 = np.float32(np.finfo(np.float32).tiny)
+        return lambda x: tiny32
+    tiny64 = np.float64(np.finfo(np.float64).tiny)
+    return lambda x: tiny64
+
+
+@numba.njit(inline="always")
+def sample_weights(x, index, pieces):
+    """``curve._bernstein``'s weights at sample ``index`` in float64, rounded once to ``x``'s type. The powers
+    are products (NumPy calls ``pow``): equal in float64 where ``index / pieces`` is a dyadic fraction (every
+    power of two of pieces), else within an ulp of float64, which rounds to the same float32 weight except
+    within an ulp of float64 of a rounding boundary."""
+    u = 1.0 if index == pieces else index * (1.0 / pieces)
+    v = 1.0 - u
+    return like(x, v * v * v), like(x, 3.0 * u * (v * v)), like(x, 3.0 * (u * u) * v), like(x, u * u * u)
+
+
+@numba.njit(inline="always")
+def any_lane(condition):
+    return condition
+
+
 @numba.njit(inline="always")
 def false_like(condition):
     return False

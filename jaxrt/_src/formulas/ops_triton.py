@@ -103,3 +103,32 @@ def sum_of_products(a0, b0, a1, b1, a2, b2):
 @triton.jit
 def dot3(ax, ay, az, bx, by, bz):
     return (ax * bx + ay * by) + az * bz
+
+
+@triton.jit
+def epsilon_of(x):
+    return tl.full(x.shape, 1.1920928955078125e-07, x.dtype)
+
+
+@triton.jit
+def tiny_of(x):
+    return tl.full(x.shape, 1.1754943508222875e-38, x.dtype)
+
+
+@triton.jit
+def sample_weights(x, index, pieces: tl.constexpr):
+    """The Bernstein weights at sample ``index`` in float64, rounded once to ``x``'s type."""
+    i = tl.zeros((1,), tl.float64) + index
+    u = i * (1.0 / tl.full(i.shape, pieces, tl.float64))
+    u = tl.where(i == pieces, 1.0, u)
+    v = 1.0 - u
+    w0 = (v * v * v).to(x.dtype)
+    w1 = (3.0 * u * (v * v)).to(x.dtype)
+    w2 = (3.0 * (u * u) * v).to(x.dtype)
+    w3 = (u * u * u).to(x.dtype)
+    return w0, w1, w2, w3
+
+
+@triton.jit
+def any_lane(condition):
+    return tl.max(condition.to(tl.int32), axis=0) > 0

@@ -9,6 +9,9 @@ Rules for a formula body (so that one source compiles under JAX, Numba and Trito
 
 - straight-line code over scalars (a lane): no ``if``, ``and``, ``or``, ``not`` or ``~`` on values (use
   :func:`select`, ``&``, ``|`` and comparisons), no loops over values;
+- a lane-uniform early-out, ``if any_lane(c):``, only around code whose every result is masked by ``c`` (so
+  that skipping it where ``c`` is false changes nothing): JAX always runs it, Numba skips it for its one lane,
+  Triton for a block where no lane needs it;
 - no ``/`` (Triton's is approximate): :func:`div_rn` or :func:`div`;
 - no bare float literal in arithmetic or a select (Numba would widen float32 to float64): :func:`like`;
 - ``+``, ``-``, ``*`` and comparisons are IEEE operations everywhere; a multiply feeding an add is left
@@ -25,18 +28,22 @@ __all__ = [
     "INF",
     "absolute",
     "atan2",
+    "any_lane",
     "div",
     "div_rn",
     "dot3",
+    "epsilon_of",
     "false_like",
     "like",
     "maximum",
     "minimum",
     "rounded_product",
+    "sample_weights",
     "select",
     "sqrt",
     "sub_product",
     "sum_of_products",
+    "tiny_of",
 ]
 
 #: Positive infinity (a compile-time constant; use ``like(x, INF)`` for a value of ``x``'s type).
@@ -127,3 +134,26 @@ def dot3(ax, ay, az, bx, by, bz):
     """The dot product of two 3-vectors: ``jnp.dot`` in JAX; ``(ax bx + ay by) + az bz`` unfused in Numba and
     Triton."""
     return (ax * bx + ay * by) + az * bz
+
+
+def epsilon_of(x):
+    """The machine epsilon of the float type of ``x`` (``2^-23`` for float32)."""
+    return 2.0**-52
+
+
+def tiny_of(x):
+    """The smallest positive normal number of the float type of ``x``."""
+    return 2.0**-1022
+
+
+def sample_weights(x, index, pieces):
+    """The four cubic Bernstein weights at ``u = index / pieces`` (``index`` in ``0..pieces``; ``u`` as
+    ``np.linspace(0, 1, pieces + 1)`` computes it), computed in float64 as
+    :func:`jaxrt._src.primitives.curve._bernstein` computes them and rounded once to the float type of ``x``."""
+    u = 1.0 if index == pieces else index * (1.0 / pieces)
+    return (1.0 - u) ** 3, 3.0 * u * (1.0 - u) ** 2, 3.0 * u**2 * (1.0 - u), u**3
+
+
+def any_lane(condition):
+    """Whether any lane needs the branch that ``if any_lane(condition):`` guards (see the rules above)."""
+    return bool(condition)

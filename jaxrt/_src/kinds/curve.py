@@ -20,7 +20,9 @@ array                 per leaf          fill       contents
 
 Bounds: the Bezier hull grown by the radius (:func:`jaxrt._src.primitives.curve.segment_bounds`).
 Intersection: :func:`jaxrt._src.primitives.curve.intersect` (Newton on the segment's pieces, caps and joints);
-re-intersection: :func:`~jaxrt._src.primitives.curve.smooth_hit`. Point queries do not take curves yet. No
+re-intersection: :func:`~jaxrt._src.primitives.curve.smooth_hit`. The compiled traversals' test: the formula
+:mod:`jaxrt._src.formulas.curve` (the CPU traversal's; the GPU kernel's copy is
+:mod:`jaxrt._src.traversal.triton_curves`). Point queries do not take curves yet. No
 decision needs JAX.
 """
 
@@ -48,6 +50,6 @@ CURVE = Kind(
     fields={"curve_parameter": "curve_data"},
     coverage={
         "gpu": Coverage(instanced=False, motion=False, alone=True, waves=False),
-        "cpu": Coverage(traced=False),
+        "cpu": Coverage(instanced=False, motion=False, alone=True, waves=False),
     },
 )

@@ -12,10 +12,13 @@ an incoherent order is traced sorted along a Morton curve of origin and directio
 The intersector picks this path (``backend="auto"`` or ``"cpu"``) when :func:`unavailable_reason` returns
 ``None`` (the default JAX backend is the CPU and Numba imports) and
 :func:`jaxrt._src.pipeline.kernel_declines` finds the scene and intersector covered: triangles, flat or
-instanced at any depth, built-in spheres, bounding boxes with the built-in sphere, disk and capped cylinder
-functions (their distances equal the portable path's to rounding: XLA contracts some of their multiply-adds,
-the loop none), primitive keyframe motion of triangles in a primitive structure (node boxes and triangles blended at each
-ray's time as the portable step blends them), nearest and any hit, the ``K`` nearest hits (``max_hits``) and
+instanced at any depth, built-in spheres, bounding boxes with the built-in sphere, disk and capped cylinder functions (their
+distances equal the portable path's to rounding: XLA contracts some of their multiply-adds, the loop none),
+primitive keyframe motion of triangles in a primitive structure (node boxes and triangles blended at each
+ray's time as the portable step blends them), round and flat curves in a primitive structure (the shared curve
+formula, :mod:`jaxrt._src.traversal.cpu_curves`; distances equal the portable path's to a few ulps, and the
+traversal also reports each curve hit's parameter and part, so the result fields need not test it again in
+XLA), nearest and any hit, the ``K`` nearest hits (``max_hits``) and
 counting, cull modes and windings, ray intervals, ray and instance masks, disabled rays and the stats
 counters, in float32 or float64.
 
@@ -34,7 +37,7 @@ import functools
 import os
 import weakref
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -47,20 +50,28 @@ try:  # the callback that hands XLA's buffers over in place (no argument or resu
     from jax.experimental.buffer_callback import buffer_callback as _buffer_callback
 except ImportError:  # pragma: no cover - depends on the jax version
     _buffer_callback = None
-from jaxrt._src.primitives import box
+from jaxrt._src.primitives import box, curve
 from jaxrt._src.traversal import packed
 from jaxrt._src.traversal.scene import TraversalLayout, TraversalRays, TraversalResult, TraversalScene
 from jaxrt._src.traversal.step import HitList
 
-__all__ = ["constants", "host_scene", "kernel_arguments", "trace_scene", "unavailable_reason"]
+__all__ = [
+    "CurveLeaves",
+    "constants",
+    "curve_frames",
+    "host_scene",
+    "kernel_arguments",
+    "trace_scene",
+    "unavailable_reason",
+]
 
 #: Base ranks of the callback's arguments (scene arrays, then rays); leading axes beyond them are vmap axes.
-_SCENE_RANKS = (3, 3, 2, 3, 3, 1, 1, 1, 2, 4, 4, 4, 1, 1, 1)
-_RAY_RANKS = (2, 2, 1, 1, 1, 1, 1)
+_SCENE_RANKS = (3, 3, 2, 3, 3, 1, 1, 1, 2, 4, 4, 4, 1, 1, 1, 3, 1)
+_RAY_RANKS = (2, 2, 1, 1, 1, 1, 1, 2)
 #: Position of the first ray argument.
 _RAYS = len(_SCENE_RANKS)
-#: Positions of the float arguments (scene geometry, analytic rows, keyframes and rays).
-_FLOAT_ARGS = (0, 1, 3, 4, 8, 9, 10, 11, 13, _RAYS, _RAYS + 1, _RAYS + 2, _RAYS + 3, _RAYS + 6)
+#: Positions of the float arguments (scene geometry, analytic rows, keyframes, curve segments and rays).
+_FLOAT_ARGS = (0, 1, 3, 4, 8, 9, 10, 11, 13, 15, _RAYS, _RAYS + 1, _RAYS + 2, _RAYS + 3, _RAYS + 6, _RAYS + 7)
 #: ``params[9]`` where the analytic leaves are built-in spheres alone (:func:`_analytic_mode`).
 _SPHERES = 2
 #: Bits of ``AnalyticLeaves.shapes`` (:func:`jaxrt._src.traversal.gpu.analytic_leaves`) the lean loop covers:
@@ -185,8 +196,8 @@ def _trace(params: tuple, arrays: list[np.ndarray], boxes: np.ndarray | None) ->
     consts, flags = constants(dtype), np.asarray(params, np.int64)
     counter = np.zeros(1, np.int64)
     spheres = params[9] == _SPHERES
-    if levels == 0 and not hit_list and (not params[9] or (spheres and not params[10])):
-        # triangles and built-in spheres, no instances: the lean loop
+    if levels == 0 and not hit_list and not params[11] and (not params[9] or (spheres and not params[10])):
+        # triangles and built-in spheres, no instances or curves: the lean loop
         rays = arrays[_RAYS : _RAYS + 5]
         if boxes is None:
             boxes = _box_rows_in_place(arrays[0], arrays[1])
@@ -204,7 +215,16 @@ def _trace(params: tuple, arrays: list[np.ndarray], boxes: np.ndarray | None) ->
     run()
     for helper in helpers:
         helper.result()
-    return out + hits if hit_list else out
+    out = out + hits if hit_list else out
+    if params[11]:  # curves: the parameter and part of each nearest curve hit, for the result fields
+        curve = (np.empty(n, dtype), np.empty(n, np.int32))
+        at = len(params) - CURVE_PARAMS
+        rays = arrays[_RAYS : _RAYS + 5]
+        cpu_kernel.cpu_curves.nearest_parts(
+            arrays[15], arrays[16], out[1], rays[0], arrays[_RAYS + 7], *rays[2:], flags, at, consts[2], *curve
+        )
+        out = out + curve
+    return out
 
 
 def _host(params: tuple, wide: bool, hosted: tuple | None, *args: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -232,9 +252,9 @@ def _host(params: tuple, wide: bool, hosted: tuple | None, *args: np.ndarray) ->
             for i, a in enumerate(args)
         )
     out = _host_arrays(params, *args, boxes=boxes)
-    if wide:  # the float outputs (distances, and the hit distances of a hit list) as pairs of words
+    if wide:  # the float outputs (distances, the hit distances of a hit list, curve parameters) as pairs of words
         words = lambda a: a.view(np.uint32).reshape(*a.shape, 2)  # noqa: E731
-        out = tuple(words(a) if i in (0, 6) else a for i, a in enumerate(out))
+        out = tuple(words(a) if a.dtype == np.float64 else a for a in out)
     return out
 
 
@@ -422,16 +442,35 @@ def _params(
     count_all: bool = False,
     analytic: int = 0,
     motion: bool = False,
+    curve_options: tuple | None = None,
 ) -> tuple[int, ...]:
     """The kernel's integer parameters (static); a hit list where ``max_hits`` is given or ``count_all``;
-    ``analytic``: the scene's analytic leaves (:func:`_analytic_mode`); ``motion``: primitive keyframe motion."""
+    ``analytic``: the scene's analytic leaves (:func:`_analytic_mode`); ``motion``: primitive keyframe motion; ``curve_options``: the
+    static options of the scene's curves (:class:`CurveLeaves`), ``None`` without curves."""
     hit_list = max_hits is not None or count_all
     if hit_list and (any_hit or (count_all and max_hits) or (not count_all and (max_hits or 0) < 1)):
         raise ValueError(
             "traversal.cpu: hit lists need max_hits >= 1 (0 or None with count_all) and no any_hit "
             f"(got max_hits={max_hits}, count_all={count_all}, any_hit={any_hit})"
         )
-    return (int(layout.root), int(layout.primitive_leaves), int(layout.levels), int(layout.stack_size), int(bool(any_hit)), int(cull), int(hit_list), int(max_hits or 0), int(bool(count_all)), int(analytic), int(bool(motion)))  # fmt: skip
+    base = (int(layout.root), int(layout.primitive_leaves), int(layout.levels), int(layout.stack_size), int(bool(any_hit)), int(cull), int(hit_list), int(max_hits or 0), int(bool(count_all)), int(analytic), int(bool(motion)))  # fmt: skip
+    return base + curve_params(curve_options)
+
+
+#: Integer parameters of the curve test at the end of the kernel's parameters (:func:`curve_params`).
+CURVE_PARAMS = 8
+
+
+def curve_params(options: tuple | None) -> tuple[int, ...]:
+    """The :data:`CURVE_PARAMS` integers of the static curve options (:class:`CurveLeaves`): whether the scene
+    has curves, pieces, iterations, approach iterations, disk caps compiled, sphere caps compiled, flat (0
+    round, 1 flat, 2 per segment), and the tolerance's float64 bits (so that the kernel rounds it to the
+    geometry's dtype as JAX rounds the Python float); zeros without curves."""
+    if options is None:
+        return (0,) * CURVE_PARAMS
+    pieces, iterations, approach, tolerance, disk, sphere, flat = options
+    bits = int(np.array(float(tolerance), np.float64).view(np.int64))
+    return (1, int(pieces), int(iterations), int(approach), int(bool(disk)), int(bool(sphere)), int(flat), bits)
 
 
 def _motion_arguments(scene: TraversalScene, layout: TraversalLayout, leaf_motion: Any) -> tuple:
@@ -459,15 +498,34 @@ def _motion_arguments(scene: TraversalScene, layout: TraversalLayout, leaf_motio
 
 
 def _arguments(
-    scene: TraversalScene, origin, direction, t_min, t_max, enabled, mask, floats, rows=None, motion=(), time=None
+    scene: TraversalScene,
+    origin,
+    direction,
+    t_min,
+    t_max,
+    enabled,
+    mask,
+    floats,
+    rows=None,
+    motion=(),
+    time=None,
+    curves=None,
 ) -> tuple:
     """The callback's arguments in the kernel's order; ``floats`` converts the float ones; ``rows``: the
     analytic leaves' rows (``None``: a placeholder row); ``motion``: :func:`_motion_arguments`; ``time``: the
-    rays' times (``None``: zeros, read only with motion)."""
+    rays' times (``None``: zeros, read only with motion); ``curves``: the :class:`CurveLeaves` (``None``:
+    placeholders, and no ray frames)."""
+    dtype = scene.node_lower.dtype
     if rows is None:
-        rows = jnp.zeros((1, packed.TRIANGLE_WIDTH), scene.node_lower.dtype)
+        rows = jnp.zeros((1, packed.TRIANGLE_WIDTH), dtype)
     if time is None:
         time = jnp.zeros(origin.shape[:-1], origin.dtype)
+    if curves is None:
+        segments, curve_flags = jnp.zeros((1, 6, 4), dtype), jnp.zeros((1,), jnp.int32)
+        frame = jnp.zeros((origin.shape[0], 1), origin.dtype)  # (a column: a zero-size array has no reshape)
+    else:
+        segments, curve_flags = curves.segments.astype(dtype), curves.flags.astype(jnp.int32)
+        frame = curve_frames(origin, direction)
     node_lower_keys, node_upper_keys, leaf_keys, moving, motion_f, motion_i = motion
     return (
         floats(scene.node_lower),
@@ -485,11 +543,31 @@ def _arguments(
         moving,
         floats(motion_f),
         motion_i,
+        floats(segments),
+        curve_flags,
         *(floats(a) for a in (origin, direction, t_min, t_max)),
         enabled.astype(bool),
         mask.astype(jnp.uint32),
         floats(time.astype(origin.dtype)),
+        floats(frame),
     )
+
+
+class CurveLeaves(NamedTuple):
+    """The curve leaves of a primitive structure as the CPU traversal reads them."""
+
+    segments: jax.Array  # (P, 6, 4) every primitive leaf's packed segment (zeros for other kinds)
+    flags: jax.Array  # (P,) int32 the segments' flags (IS_CURVE marks curve leaves)
+    # static: (pieces, iterations, approach_iterations, tolerance, any disk caps, any sphere caps, flat), as
+    # jaxrt._src.traversal.gpu.CurveLeaves.options
+    options: tuple
+
+
+def curve_frames(origin: jax.Array, direction: jax.Array) -> jax.Array:
+    """``(N, 10)``: each ray's :func:`jaxrt._src.primitives.curve.curve_ray` frame row by row, then ``1 / |d|``
+    (computed by XLA, as the portable curve test computes it)."""
+    ray = jax.vmap(curve.curve_ray)(lax.stop_gradient(origin), lax.stop_gradient(direction))
+    return jnp.concatenate([ray.frame.reshape(-1, 9), ray.inv_length[:, None]], axis=-1)
 
 
 def kernel_arguments(
@@ -503,15 +581,17 @@ def kernel_arguments(
     count_all: bool = False,
     analytic: Any = None,
     leaf_motion: Any = None,
+    curves: CurveLeaves | None = None,
 ) -> tuple[tuple[int, ...], list[np.ndarray]]:
     """``(params, arrays)`` for calling the compiled traversal directly on host arrays (outside ``jit``), as
     :func:`trace_scene` would for ``rays`` (the other arguments as there): for benchmarks
     (:func:`jaxrt._src.pipeline.cpu_kernel_arguments`)."""
     moving = leaf_motion is not None
-    params = _params(layout, any_hit, cull, max_hits, count_all, _analytic_mode(analytic), moving)
+    options = None if curves is None else curves.options
+    params = _params(layout, any_hit, cull, max_hits, count_all, _analytic_mode(analytic), moving, options)
     rows = None if analytic is None else analytic.rows
     motion = _motion_arguments(scene, layout, leaf_motion)
-    args = _arguments(scene, *rays[:6], lambda a: a, rows, motion, rays.time if moving else None)
+    args = _arguments(scene, *rays[:6], lambda a: a, rows, motion, rays.time if moving else None, curves)
     return params, [np.ascontiguousarray(a) for a in args]
 
 
@@ -532,6 +612,7 @@ def trace_scene(
     analytic: Any = None,
     time: jax.Array | None = None,
     leaf_motion: Any = None,
+    curves: CurveLeaves | None = None,
     host: Any = None,
 ) -> TraversalResult:
     """Trace rays through a scene of any instance depth with the compiled CPU traversal.
@@ -558,13 +639,17 @@ def trace_scene(
       leaf_motion: primitive keyframe motion of a primitive structure of triangles
         (:func:`jaxrt._src.traversal.gpu.leaf_motion`), or ``None``: node boxes (``scene.node_motion``) and
         triangles are blended at each ray's time as the portable step blends them.
+      curves: the :class:`CurveLeaves` of a primitive structure with curves (``None``: none): its curve leaves
+        are tested with the shared curve formula (:mod:`jaxrt._src.traversal.cpu_curves`).
       host: ``None``, or the addresses of ``scene``'s node and triangle arrays and maybe of the rays, with
         the structure's box rows (:func:`host_scene`): the arrays of a primitive structure and rays passed to
         the running program, read in place (a disabled ray's own values are read, and skipped).
 
     Returns:
       The portable traversal's :class:`~jaxrt._src.traversal.scene.TraversalResult`; with ``max_hits`` or
-      ``count_all`` its ``hits`` too (then ``leaf`` is the first hit and ``distance`` the culling bound).
+      ``count_all`` its ``hits`` too (then ``leaf`` is the first hit and ``distance`` the culling bound); with
+      ``curves`` its ``curve``: the curve parameter and part of each ray's ``leaf`` where that is a curve,
+      tested again in the ray's interval (the exact test the result fields would repeat).
     """
     dtype = scene.node_lower.dtype
     if origin.dtype != dtype:
@@ -573,7 +658,10 @@ def trace_scene(
     moving = leaf_motion is not None
     if moving and levels:
         raise ValueError("traversal.cpu.trace_scene: keyframe motion is traced in primitive structures only")
-    params = _params(layout, any_hit, cull, max_hits, count_all, _analytic_mode(analytic), moving)
+    if curves is not None and levels:
+        raise ValueError("traversal.cpu.trace_scene: curves are traced in primitive structures only")
+    options = None if curves is None else curves.options
+    params = _params(layout, any_hit, cull, max_hits, count_all, _analytic_mode(analytic), moving, options)
     hit_list, k = bool(params[6]), params[7]
     detached = lax.stop_gradient
     wide = jnp.dtype(dtype).itemsize == 8
@@ -581,7 +669,7 @@ def trace_scene(
     rows = None if analytic is None else analytic.rows
     motion = jax.tree_util.tree_map(detached, _motion_arguments(scene, layout, leaf_motion))
     args = _arguments(
-        scene, origin, direction, t_min, t_max, enabled, mask, words, rows, motion, time if moving else None
+        scene, origin, direction, t_min, t_max, enabled, mask, words, rows, motion, time if moving else None, curves
     )
     n = origin.shape[0]
     shapes = (
@@ -598,6 +686,11 @@ def trace_scene(
             jax.ShapeDtypeStruct((n, k), jnp.int32),
             jax.ShapeDtypeStruct((n,), jnp.int32),
             jax.ShapeDtypeStruct((n, k, levels), jnp.int32),
+        )
+    if curves is not None:
+        shapes += (
+            jax.ShapeDtypeStruct((n, 2), jnp.uint32) if wide else jax.ShapeDtypeStruct((n,), dtype),
+            jax.ShapeDtypeStruct((n,), jnp.int32),
         )
     hosted = None
     if host is not None:  # arrays read in place (see host_scene): the scene's, and maybe the rays'
@@ -622,6 +715,9 @@ def trace_scene(
     floats = lambda a: lax.bitcast_convert_type(a, dtype) if wide else a  # noqa: E731
     hits = None
     if hit_list:
-        distances, leaves, total, chains = out[6:]
+        distances, leaves, total, chains = out[6:10]
         hits = HitList(floats(distances), leaves, total, chains if levels else None)
-    return TraversalResult(floats(out[0]), *out[1:6], hits)
+    nearest = None
+    if curves is not None:
+        nearest = (floats(out[-2]), out[-1])
+    return TraversalResult(floats(out[0]), *out[1:6], hits, nearest)

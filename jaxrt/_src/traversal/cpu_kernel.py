@@ -14,7 +14,8 @@ which tests both child boxes of a node in one vector slab test (:func:`_box_pair
 :func:`box_rows`) for rays parallel to no axis.
 
 The leaf and box tests are the shared formulas of :mod:`jaxrt._src.formulas` (slab test, shear, watertight
-triangle, analytic shapes) instantiated for Numba; this module holds the loop and the memory layout around them.
+triangle, analytic shapes, curves through :mod:`jaxrt._src.traversal.cpu_curves`) instantiated for Numba; this
+module holds the loop and the memory layout around them.
 
 Same decisions to the bit: every value the portable path compares is computed here with the same float
 operations, in the same order and precision (the geometry's dtype). Two details make that hold (both in
@@ -44,6 +45,7 @@ from numba.extending import intrinsic
 from jaxrt._src import formulas
 from jaxrt._src.formulas.ops_numba import fma as _fma
 from jaxrt._src.formulas.ops_numba import key_caches_on_formulas
+from jaxrt._src.traversal import cpu_curves
 
 _box_f = formulas.instance("box", "numba")
 _slab_axis = _box_f.slab_axis
@@ -62,8 +64,12 @@ _sphere = _shapes.sphere
 _disk = _shapes.disk
 _capped_cylinder = _shapes.capped_cylinder
 _ray_sphere = formulas.instance("sphere", "numba").ray_sphere
+_curve_leaf = cpu_curves.curve_leaf
 
 __all__ = ["trace_flat", "trace_rays"]
+
+#: The flag bit of curve leaves (:data:`jaxrt._src.primitives.curve.IS_CURVE`).
+_IS_CURVE = 32
 
 #: Unsigned offsets: rows are read from flat views at unsigned indices (no negative-index wraparound code).
 _U1 = np.uint64(1)
@@ -361,7 +367,8 @@ def _box_row(boxes, row, nan):
 def trace_rays(
     node_lower, node_upper, node_children, leaf_triangle, world_to_object, child_root, instance_facing,
     instance_mask, analytic_rows, node_keys_lower, node_keys_upper, leaf_keys, leaf_moving, motion_f, motion_i,
-    origin, direction, t_min_all, t_max_all, enabled, mask_all, time_all, consts, params, counter, chunk, end, out_distance,
+    curve_segments, curve_flags, origin, direction, t_min_all, t_max_all, enabled, mask_all, time_all, curve_frame,
+    consts, params, counter, chunk, end, out_distance,
     out_leaf, out_chain, out_visited, out_tested, out_overflow, out_hit_distance, out_hit_leaf, out_hit_total,
     out_hit_chain,
 ):  # fmt: skip
@@ -383,10 +390,15 @@ def trace_rays(
     moving leaves (``leaf_moving``) vanish outside the range on a ``"vanish"`` border. ``motion_f`` holds
     the node then the leaf keyframes' ``start, end, end - start, K - 1`` in the geometry's dtype, ``motion_i``
     whether nodes move, vanish at start, vanish at end.
+
+    With ``params[11]`` (curves, in a primitive structure) leaves whose flags ``curve_flags`` have ``IS_CURVE``
+    are tested as their segment in ``curve_segments`` (``(P, 6, 4)``) with the ray's frame ``curve_frame[i]``
+    (:func:`jaxrt._src.traversal.cpu_curves.curve_leaf`, options ``params[11:19]``).
     """
     root, primitive_leaves, levels, stack_size, any_hit, cull = params[0], params[1], params[2], params[3], params[4] != 0, params[5]  # fmt: skip
     hit_list, k, count_all, analytic = params[6] != 0, params[7], params[8] != 0, params[9] != 0
     moving, nodes_move = params[10] != 0, motion_i[0] != 0
+    curves = params[11] != 0
     vanish_start, vanish_end = motion_i[1] != 0, motion_i[2] != 0
     key_v = np.empty(9, consts.dtype)
     key_b = np.empty(12, consts.dtype)
@@ -485,6 +497,8 @@ def trace_rays(
                             tested += 1
                             if analytic and analytic_rows[k0, 3] != 0:
                                 ok0, t0 = _analytic(analytic_rows[k0], o0, o1, o2, w0, w1, w2, t_min, distance, one, inf)  # fmt: skip
+                            elif curves and (curve_flags[k0] & _IS_CURVE) != 0:
+                                ok0, t0 = _curve_leaf(curve_segments, curve_flags, k0, o0, o1, o2, curve_frame, i, t_min, distance, params, 11, inf)  # fmt: skip
                             elif moving:  # the triangle blended at the ray's time; a moving one may vanish
                                 _leaf_keys(leaf_keys, leaf_key, k0, leaf_w, one, key_v)
                                 v = (key_v[0], key_v[1], key_v[2], key_v[3], key_v[4], key_v[5], key_v[6], key_v[7], key_v[8])  # fmt: skip
@@ -505,6 +519,8 @@ def trace_rays(
                             tested += 1
                             if analytic and analytic_rows[k1, 3] != 0:
                                 ok1, t1 = _analytic(analytic_rows[k1], o0, o1, o2, w0, w1, w2, t_min, distance, one, inf)  # fmt: skip
+                            elif curves and (curve_flags[k1] & _IS_CURVE) != 0:
+                                ok1, t1 = _curve_leaf(curve_segments, curve_flags, k1, o0, o1, o2, curve_frame, i, t_min, distance, params, 11, inf)  # fmt: skip
                             elif moving:  # the triangle blended at the ray's time; a moving one may vanish
                                 _leaf_keys(leaf_keys, leaf_key, k1, leaf_w, one, key_v)
                                 v = (key_v[0], key_v[1], key_v[2], key_v[3], key_v[4], key_v[5], key_v[6], key_v[7], key_v[8])  # fmt: skip

@@ -76,3 +76,7 @@ class TraversalResult(NamedTuple):
     primitives_tested: jax.Array
     stack_overflow: jax.Array
     hits: Any = None  # with ``max_hits``: a :class:`~jaxrt._src.traversal.step.HitList`
+    # ``(u, part)``: the curve parameter and ``PART_*`` code of each ray's ``leaf`` where it is a curve, from
+    # the exact curve test in the ray's interval, where the traversal computed them (the CPU traversal), else
+    # ``None`` (the result fields then test the leaf again)
+    curve: Any = None
