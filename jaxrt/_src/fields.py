@@ -3,11 +3,11 @@
 The traversal only picks the hit (detached). The chosen primitive is then intersected again in JAX, with the
 ray moved into the hit's object space level by level as the traversal did: exact values come from the test
 the traversal ran, gradients from a smooth formula (triangles: a world-space re-intersection with the vertices
-moved by the chain's composed object-to-world transform), the curve's smooth hit, or the user's intersection
-function called again, the sphere test run again. So distances, barycentrics, curve parameters, box distances,
-normals and world-space transforms differentiate with respect to vertices, control points, sphere centres,
-radii, instance transforms and rays, holding the hit fixed. A scene without instances compiles none of the
-transform code.
+moved by the chain's composed object-to-world transform), the curve's smooth hit, the user's intersection
+function called again, or the test of a kind with ``formula_leaves`` (spheres) run again. So distances,
+barycentrics, curve parameters, box distances, normals and world-space transforms differentiate with respect to
+vertices, control points, sphere centres, radii, instance transforms and rays, holding the hit fixed. A scene
+without instances compiles none of the transform code.
 """
 
 from __future__ import annotations
@@ -22,8 +22,7 @@ from jax import lax
 from jaxrt._src import curves as curve_support
 from jaxrt._src import leaves as leaf_tests
 from jaxrt._src import normals as hit_normals
-from jaxrt._src.kinds import sphere as sphere_kind
-from jaxrt._src.kinds.registry import BOUNDING_BOX, CURVE, SPHERE
+from jaxrt._src.kinds.registry import BOUNDING_BOX, CURVE, KINDS
 from jaxrt._src.primitive_data import data_at
 from jaxrt._src.primitives import curve as primitive
 from jaxrt._src.primitives import triangle
@@ -163,23 +162,23 @@ def _box_distance(intersector, view, leaf, is_box, origin, direction, t_min, t_m
     return jnp.where(is_box, attached, jnp.inf)
 
 
-def _sphere_hits(rows, is_sphere, origin, direction, t_min, t_max, distance):
-    """Sphere hits: ``(distance, front, normal)``, the traversal's distance with the gradient of the sphere
-    test run again (in object space, on the ray's own interval, so it takes the same root); ``normal`` the
-    outward object-space normal at that distance (unnormalised). Other lanes test a dummy sphere (no NaN in
-    their zero gradients)."""
+def _formula_hits(kind, rows, mine, origin, direction, t_min, t_max, distance):
+    """Hits of a ``formula_leaves`` kind (spheres): ``(distance, front, normal)``, the traversal's distance with
+    the gradient of the kind's test run again (in object space, on the ray's own interval, so it takes the same
+    root); ``normal`` the kind's object-space normal at that distance (unnormalised). Other lanes test the
+    kind's dummy row and ray (no NaN in their zero gradients)."""
     detached = lax.stop_gradient
-    dummy = sphere_kind.rows(jnp.zeros((1, 3), rows.dtype), jnp.ones((1,), rows.dtype))[0]
-    rows = jnp.where(is_sphere[:, None, None], rows, dummy)
-    origin = jnp.where(is_sphere[:, None], origin, jnp.array([0.0, 0.0, -2.0], origin.dtype))
-    direction = jnp.where(is_sphere[:, None], direction, jnp.array([0.0, 0.0, 1.0], direction.dtype))
-    lo = jnp.where(is_sphere, t_min, 0.0)
-    hi = jnp.where(is_sphere, detached(t_max), jnp.inf)
-    accept, smooth, front = sphere_kind.intersect(origin, direction, lo, hi, rows)
+    dummy_row, dummy_origin, dummy_direction = kind.dummy(rows.dtype)
+    rows = jnp.where(mine.reshape(mine.shape + (1,) * (rows.ndim - 1)), rows, dummy_row)
+    origin = jnp.where(mine[:, None], origin, dummy_origin)
+    direction = jnp.where(mine[:, None], direction, dummy_direction)
+    lo = jnp.where(mine, t_min, 0.0)
+    hi = jnp.where(mine, detached(t_max), jnp.inf)
+    accept, smooth, front = kind.reintersect(origin, direction, lo, hi, rows)
     smooth = jnp.where(accept, smooth, 1.0)
     attached = detached(distance) + jnp.where(accept, smooth - detached(smooth), 0.0)
-    normal = sphere_kind.normal(origin, direction, jnp.where(is_sphere, attached, 1.0), rows)
-    return jnp.where(is_sphere, attached, jnp.inf), is_sphere & detached(front), normal
+    normal = kind.normal(origin, direction, jnp.where(mine, attached, 1.0), rows)
+    return jnp.where(mine, attached, jnp.inf), mine & detached(front), normal
 
 
 def hit_fields(
@@ -231,14 +230,18 @@ def hit_fields(
         hit = hit & ~is_box
         kind = jnp.where(is_box, int(IntersectionType.BOUNDING_BOX), kind)
         exact_distance = jnp.where(is_box, box_t, exact_distance)
-    if SPHERE.name in kinds:  # sphere hits: re-tested (in object space) differentiably
-        is_sphere = found & view.leaf_flag(view.slot_table(view.slots_where(SPHERE.holds)), leaf)
-        sphere_t, sphere_front, sphere_normal = _sphere_hits(
-            leaves.triangle[leaf], is_sphere, object_origin, object_direction, t_min, t_max, distance
-        )
-        hit = hit & ~is_sphere
-        kind = jnp.where(is_sphere, int(IntersectionType.SPHERE), kind)
-        exact_distance = jnp.where(is_sphere, sphere_t, exact_distance)
+    formula_hits = {}  # the formula kinds' hits (spheres): re-tested (in object space) differentiably
+    for formula_kind in KINDS:
+        if formula_kind.formula_leaves and formula_kind.name in kinds:
+            mine = found & view.leaf_flag(view.slot_table(view.slots_where(formula_kind.holds)), leaf)
+            rows = leaf_tests.formula_rows(formula_kind, view)[leaf]
+            kind_t, front, kind_normal = _formula_hits(
+                formula_kind, rows, mine, object_origin, object_direction, t_min, t_max, distance
+            )
+            formula_hits[formula_kind] = (mine, front, kind_normal)
+            hit = hit & ~mine
+            kind = jnp.where(mine, formula_kind.intersection_type, kind)
+            exact_distance = jnp.where(mine, kind_t, exact_distance)
     kind = jnp.where(hit, int(IntersectionType.TRIANGLE), kind)
 
     # Re-intersect the chosen triangle: exact values from the watertight test (in object space), gradients from
@@ -278,8 +281,10 @@ def hit_fields(
         fields["curve_parameter"] = (
             jnp.where(is_curve, curve_u, 0.0) if CURVE.name in kinds else jnp.zeros_like(distance)
         )
-    if intersector.has("sphere_data"):
-        fields["sphere_front_facing"] = sphere_front if SPHERE.name in kinds else jnp.zeros(found.shape, bool)
+    for formula_kind in KINDS:
+        if formula_kind.front_field is not None and intersector.has(formula_kind.fields[formula_kind.front_field]):
+            kind_hits = formula_hits.get(formula_kind)
+            fields[formula_kind.front_field] = kind_hits[1] if kind_hits else jnp.zeros(found.shape, bool)
     if intersector.has("primitive_data"):
         fields["primitive_data"] = data_at(leaves.primitive_data, leaf, found)
     if intersector.has("instancing"):
@@ -293,8 +298,8 @@ def hit_fields(
                 view, leaf, is_curve, curve_part, curve_u, curve_t, object_origin, object_direction
             )
             normal = jnp.where(is_curve[:, None], curve_normal, normal)
-        if SPHERE.name in kinds:
-            normal = jnp.where(is_sphere[:, None], sphere_normal, normal)
+        for mine, _, kind_normal in formula_hits.values():
+            normal = jnp.where(mine[:, None], kind_normal, normal)
         if transforms is not None:
             normal = hit_normals.to_world(normal, transforms.world_to_object)
         fields["normal"] = hit_normals.unit(normal)

@@ -25,8 +25,8 @@ from jax import lax
 
 from jaxrt._src import curves as curve_support
 from jaxrt._src.candidate import BoundingBoxCandidate, TriangleCandidate
-from jaxrt._src.kinds import sphere as sphere_kind
-from jaxrt._src.kinds.registry import BOUNDING_BOX, CURVE, SPHERE, TRIANGLE
+from jaxrt._src.kinds.kind import Kind
+from jaxrt._src.kinds.registry import BOUNDING_BOX, CURVE, KINDS, TRIANGLE
 from jaxrt._src.primitive_data import data_at
 from jaxrt._src.primitives import triangle
 from jaxrt._src.ray import Ray
@@ -35,15 +35,16 @@ from jaxrt._src.scene_view import SceneView
 __all__ = [
     "BoxLeaves",
     "FilteredTriangleLeaves",
+    "FormulaLeaves",
     "KindSwitch",
     "MotionLeaves",
-    "SphereLeaves",
     "TriangleLeaves",
     "box_candidate",
     "box_slots",
     "curve_configuration",
     "call_function",
     "filtered_slots",
+    "formula_rows",
     "function_ray",
     "leaf_tester",
 ]
@@ -188,16 +189,18 @@ class BoxLeaves:
         return jax.vmap(one)(leaves)
 
 
-class SphereLeaves:
-    """Built-in spheres (:func:`jaxrt._src.formulas.sphere.ray_sphere`); hits on non-opaque spheres must pass
-    the intersector's filter where it has one (a :class:`~jaxrt.TriangleCandidate` with zero barycentrics)."""
+class FormulaLeaves:
+    """The leaves of a kind tested by its formula alone (``Kind.formula_leaves``: built-in spheres): the kind's
+    ``intersect`` on the rows of its first leaf array; hits on the kind's non-opaque geometries must pass the
+    intersector's filter where it has one (a :class:`~jaxrt.TriangleCandidate` with zero barycentrics)."""
 
-    def __init__(self, view: SceneView, rows: Any, filter_fn: Callable | None = None):
+    def __init__(self, kind: Kind, view: SceneView, rows: Any, filter_fn: Callable | None = None):
+        self.kind = kind
         self.view = view
         self.rows = rows
         self.filter_fn = filter_fn
         if filter_fn is not None:
-            self.non_opaque = view.slot_table(view.slots_where(lambda g: SPHERE.holds(g) and not g.opaque))
+            self.non_opaque = view.slot_table(view.slots_where(lambda g: kind.holds(g) and not g.opaque))
             self.leaf_data = jax.tree_util.tree_map(lax.stop_gradient, view.leaves.primitive_data)
 
     def prepare(self, origin, direction, facing):
@@ -207,7 +210,7 @@ class SphereLeaves:
     def __call__(self, context, leaves, t_min, t_max):
         origin, direction = context
         k = jnp.maximum(leaves, 0)
-        hit, distance, front = sphere_kind.intersect(origin, direction, t_min, t_max, self.rows[k])
+        hit, distance, front = self.kind.intersect(origin, direction, t_min, t_max, self.rows[k])
         hit = hit & (leaves >= 0)
         if self.filter_fn is not None:
             leaf_arrays = self.view.leaves
@@ -227,6 +230,11 @@ class SphereLeaves:
 
             hit = jax.vmap(one)(leaves, hit, distance, front)
         return hit, jnp.where(hit, distance, jnp.inf)
+
+
+def formula_rows(kind: Kind, view: SceneView) -> jax.Array:
+    """The leaf rows a ``formula_leaves`` kind is tested on: its first leaf array, as the scene view holds it."""
+    return getattr(view.leaves, kind.leaf_arrays[0].name.removeprefix("leaf_"))
 
 
 class KindSwitch:
@@ -281,7 +289,8 @@ class MotionLeaves:
 
 
 def leaf_tester(intersector: Any, view: SceneView, *, user_code: bool = True) -> Any:
-    """The leaf tests the scene's kinds need: triangles (filtered where non-opaque), curves, spheres, boxes; with
+    """The leaf tests the scene's kinds need: triangles (filtered where non-opaque), curves, boxes and each
+    ``formula_leaves`` kind (spheres) through :class:`FormulaLeaves`; with
     primitive motion, on the leaves blended at each ray's time (:class:`MotionLeaves`).
 
     Without ``user_code`` neither the filter nor intersection functions are called: box leaves never hit and
@@ -308,10 +317,11 @@ def _static_tester(intersector: Any, view: SceneView, user_code: bool) -> Any:
     if CURVE.name in kinds:
         config = curve_configuration(intersector, view)
         testers[CURVE.name] = curve_support.CurveLeaves(detached(view.leaves.curve), view.leaves.curve_flags, **config)
-    if SPHERE.name in kinds:
-        non_opaque = any(SPHERE.holds(g) and not g.opaque for g in view.geometry_info)
-        filter_fn = intersector.filter if user_code and non_opaque else None
-        testers[SPHERE.name] = SphereLeaves(view, detached(view.leaves.triangle), filter_fn)
+    for kind in KINDS:
+        if kind.formula_leaves and kind.name in kinds:
+            non_opaque = any(kind.holds(g) and not g.opaque for g in view.geometry_info)
+            filter_fn = intersector.filter if user_code and non_opaque else None
+            testers[kind.name] = FormulaLeaves(kind, view, detached(formula_rows(kind, view)), filter_fn)
     if BOUNDING_BOX.name in kinds and user_code:
         testers[BOUNDING_BOX.name] = BoxLeaves(view, intersector.intersection_functions or ())
     if len(testers) == 1 and set(testers) == set(kinds):

@@ -91,6 +91,24 @@ class Kind:
         primitive, :mod:`jaxrt._src.filter_states`).
       declines: ``(intersector, geometry_info, traversal) -> str | None``: what else of the kind no compiled
         traversal takes, even in candidate waves (``None``: nothing).
+      formula_leaves: the portable traversal and the result fields need no code of their own for the kind
+        (:mod:`jaxrt._src.leaves`, :mod:`jaxrt._src.fields` iterate over such kinds): the leaves are tested by
+        ``intersect`` on the rows of the first of ``leaf_arrays``, ``(origin, direction, t_min, t_max, row) ->
+        (hit, distance, front)``; a user filter on the kind's non-opaque geometries sees a
+        :class:`~jaxrt.TriangleCandidate` with zero barycentrics and ``front``; the fields run ``reintersect``
+        again on each hit's interval (the distance's gradient), report ``front`` as ``front_field`` and take the
+        surface normal from ``normal``.
+      normal: ``(origin, direction, distance, row) -> normal`` (not normalised, object space) of a
+        ``formula_leaves`` kind.
+      front_field: the result field that reports a ``formula_leaves`` kind's ``front`` (false off the kind).
+      dummy: ``dtype -> (row, origin, direction)``: a leaf row and a ray that hit each other, tested in the
+        lanes of other kinds so that their zero gradients hold no NaN (``formula_leaves`` kinds).
+      inside: ``(point, row) -> bool``: whether the point lies inside the closed primitive of a row, for a
+        kind that winding numbers count as a solid (1 inside, 0 outside: no surface orientation to integrate);
+        ``None``: the kind is counted by its triangles' solid angles.
+      checks: ``geometry -> ((message, bad, value), ...)``: the rules of ``checks=True`` for a geometry of the
+        kind: ``bad (N,)`` flags the bad rows of ``value (N, ...)``; ``message`` names the array with
+        ``{index}`` and ``{value}`` (``None``: the kind has no rules, or :mod:`jaxrt._src.checks` writes them).
     """
 
     name: str
@@ -108,6 +126,12 @@ class Kind:
     function_code: Callable[[Any, tuple, str, str], str | None] | None = None
     filter_code: Callable[[Any, tuple, str, str], str | None] | None = None
     declines: Callable[[Any, tuple, str], str | None] | None = None
+    formula_leaves: bool = False
+    normal: Callable[..., Any] | None = None
+    front_field: str | None = None
+    dummy: Callable[[Any], tuple[Any, Any, Any]] | None = None
+    inside: Callable[..., Any] | None = None
+    checks: Callable[[Any], tuple[tuple[str, Any, Any], ...]] | None = None
 
     def holds(self, info: Any) -> bool:
         """Whether the geometry described by ``info`` (a ``GeometryInfo`` or a geometry) is of this kind."""

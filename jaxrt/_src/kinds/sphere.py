@@ -32,7 +32,7 @@ import jax.numpy as jnp
 from jaxrt._src import formulas
 from jaxrt._src.kinds.kind import Coverage, Kind, LeafArray
 
-__all__ = ["SPHERE", "bounds", "closest_point", "intersect", "rows", "unpack"]
+__all__ = ["SPHERE", "bounds", "checks", "closest_point", "dummy", "inside", "intersect", "normal", "rows", "unpack"]
 
 _formula = formulas.instance("sphere", "jax")
 
@@ -87,6 +87,29 @@ def closest_point(point: jax.Array, row: jax.Array) -> jax.Array:
     return jnp.stack([qx, qy, qz], axis=-1)
 
 
+def inside(point: jax.Array, row: jax.Array) -> jax.Array:
+    """Whether ``point (..., 3)`` lies in the closed ball of leaf row ``row (..., 3, 3)``."""
+    centre, radius = unpack(row)
+    return jnp.sum((point - centre) ** 2, axis=-1) <= radius * radius
+
+
+def dummy(dtype: Any) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """A unit sphere at the origin and a ray along ``+z`` from ``(0, 0, -2)`` that hits it."""
+    row = rows(jnp.zeros((1, 3), dtype), jnp.ones((1,), dtype))[0]
+    return row, jnp.array([0.0, 0.0, -2.0], dtype), jnp.array([0.0, 0.0, 1.0], dtype)
+
+
+def checks(geometry: Any) -> tuple[tuple[str, jax.Array, jax.Array], ...]:
+    """The rules of ``checks=True`` for a sphere geometry: finite centres, finite radii ``>= 0``."""
+    centers, radii = geometry.centers, geometry.radii
+    not_finite = ~jnp.all(jnp.isfinite(centers), axis=1)
+    bad_radius = ~jnp.isfinite(radii) | ~(radii >= 0)
+    return (
+        ("centers[{index}] = {value} is not finite", not_finite, centers),
+        ("radii[{index}] = {value} is negative or not finite", bad_radius, radii),
+    )
+
+
 def _filter_code(intersector: Any, infos: tuple, traversal: str, where: str) -> str | None:
     if intersector.filter is None or all(g.opaque for g in infos):
         return None
@@ -110,4 +133,10 @@ SPHERE = Kind(
     # the compiled traversals test sphere leaves as analytic rows (code 5), from the static leaf rows
     coverage={"gpu": Coverage(motion=False, waves=False), "cpu": Coverage(motion=False)},
     filter_code=_filter_code,
+    formula_leaves=True,
+    normal=normal,
+    front_field="sphere_front_facing",
+    dummy=dummy,
+    inside=inside,
+    checks=checks,
 )
