@@ -32,8 +32,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from jaxrt._src.kinds import sphere as sphere_kind
-from jaxrt._src.kinds.registry import SPHERE
+from jaxrt._src.kinds.kind import Kind
+from jaxrt._src.kinds.registry import KINDS
 from jaxrt._src.point_query import _box_table, check_not_empty, check_points, check_structure, closest_point, run_flat
 from jaxrt._src.point_traversal import in_morton_order, lanes_for_backend, walk_points
 from jaxrt._src.primitives import point_triangle as geo
@@ -87,9 +87,8 @@ class _Dipoles(NamedTuple):
 def _dipoles(structure: PrimitiveAccelerationStructure, beta: float) -> _Dipoles:
     tri = structure.leaf_triangle
     normals = 0.5 * jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # zero for non-triangle leaves
-    spheres = _sphere_leaves(structure)
-    if spheres is not None:  # a sphere's row is no triangle: solids count near the point only, as boxes
-        normals = jnp.where(spheres[:, None], 0.0, normals)
+    for _, solid in _solid_leaves(structure):  # a solid's row is no triangle: solids count near the point only
+        normals = jnp.where(solid[:, None], 0.0, normals)
     area = jnp.sqrt(jnp.sum(normals * normals, axis=-1, keepdims=True))
     lower, upper = structure.node_lower, structure.node_upper
     finite = jnp.all(lower <= upper, axis=-1, keepdims=True)
@@ -115,24 +114,25 @@ def _dipoles(structure: PrimitiveAccelerationStructure, beta: float) -> _Dipoles
     return _Dipoles(sums[..., :3], center, beta * beta * jnp.sum(corner * corner, axis=-1))
 
 
-def _sphere_leaves(structure: PrimitiveAccelerationStructure) -> jax.Array | None:
-    """``(C,)`` whether each leaf is a sphere (``None`` without spheres)."""
-    if not any(SPHERE.holds(g) for g in structure.geometry_info):
-        return None
-    table = jnp.asarray(np.array([SPHERE.holds(g) for g in structure.geometry_info] + [False]))
-    return table[jnp.where(structure.leaf_geometry < 0, -1, structure.leaf_geometry)]
+def _solid_leaves(structure: PrimitiveAccelerationStructure) -> tuple[tuple[Kind, jax.Array], ...]:
+    """``(kind, (C,) whether each leaf is of the kind)`` of each kind present that counts as a solid
+    (:attr:`~jaxrt._src.kinds.kind.Kind.inside`: spheres)."""
+    solids = []
+    for kind in KINDS:
+        if kind.inside is not None and any(kind.holds(g) for g in structure.geometry_info):
+            table = jnp.asarray(np.array([kind.holds(g) for g in structure.geometry_info] + [False]))
+            solids.append((kind, table[jnp.where(structure.leaf_geometry < 0, -1, structure.leaf_geometry)]))
+    return tuple(solids)
 
 
 def _leaf_winding(structure, box_table, p: jax.Array, leaf: jax.Array) -> jax.Array:
     """Winding number of leaf ``leaf``'s primitive at ``p``: a solid angle, or 1 inside a box primitive or a
-    sphere."""
+    solid (a sphere)."""
     w = geo.solid_angle(p, structure.leaf_triangle[leaf]) / _FOUR_PI
     geometry = structure.leaf_geometry[leaf]
-    spheres = _sphere_leaves(structure)
-    if spheres is not None:
-        centre, radius = sphere_kind.unpack(structure.leaf_triangle[leaf])
-        inside = jnp.sum((p - centre) ** 2) <= radius * radius
-        w = jnp.where(spheres[leaf], inside.astype(w.dtype), w)
+    for kind, solid in _solid_leaves(structure):
+        inside = kind.inside(p, getattr(structure, kind.leaf_arrays[0].name)[leaf])
+        w = jnp.where(solid[leaf], inside.astype(w.dtype), w)
     w = jnp.where(geometry < 0, 0, w)
     if box_table is not None:
         box = structure.leaf_box[leaf]
