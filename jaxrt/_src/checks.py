@@ -37,7 +37,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.experimental import io_callback
 
-from jaxrt._src.kinds.registry import BOUNDING_BOX, CURVE, SPHERE, TRIANGLE
+from jaxrt._src.kinds import registry
+from jaxrt._src.kinds.registry import BOUNDING_BOX, CURVE, TRIANGLE
 
 
 class BuildCheckError(ValueError):
@@ -159,7 +160,8 @@ def _not_finite(array: jax.Array) -> jax.Array:
 
 
 def geometry_rules(geometries: Sequence[Any], owner: str) -> list[_Rule]:
-    """The rules of triangle, curve, bounding-box and sphere geometries (by the attributes each kind has)."""
+    """The rules of triangle, curve and bounding-box geometries (by the attributes each kind has), and those each
+    other kind declares (:attr:`~jaxrt._src.kinds.kind.Kind.checks`: spheres)."""
     rules = []
     for g, geometry in enumerate(geometries):
         name = f"{owner}: geometries[{g}] ({type(geometry).__name__})"
@@ -192,11 +194,10 @@ def geometry_rules(geometries: Sequence[Any], owner: str) -> list[_Rule]:
             rules.append(_Rule(name + " box {index} (lower, upper) = {value} is not finite", _not_finite(box), box))
             inverted = jnp.any(geometry.lower > geometry.upper, axis=-1)
             rules.append(_Rule(name + " box {index} (lower, upper) = {value} has lower > upper", inverted, box))
-        elif SPHERE.holds(geometry):
-            centers, radii = geometry.centers, geometry.radii
-            rules.append(_Rule(name + " centers[{index}] = {value} is not finite", _not_finite(centers), centers))
-            bad_radius = ~jnp.isfinite(radii) | ~(radii >= 0)
-            rules.append(_Rule(name + " radii[{index}] = {value} is negative or not finite", bad_radius, radii))
+        else:  # a kind that declares its own rules
+            kind = next((k for k in registry.KINDS if k.holds(geometry)), None)
+            if kind is not None and kind.checks is not None:
+                rules.extend(_Rule(name + " " + message, bad, value) for message, bad, value in kind.checks(geometry))
     return rules
 
 
