@@ -22,7 +22,7 @@ from jaxrt._src import fields as result_fields
 from jaxrt._src import filter_states
 from jaxrt._src import leaves as leaf_tests
 from jaxrt._src.kinds import registry
-from jaxrt._src.kinds.registry import BOUNDING_BOX, CURVE, SPHERE, TRIANGLE
+from jaxrt._src.kinds.registry import BOUNDING_BOX, CURVE, TRIANGLE
 from jaxrt._src.numerics import full_precision
 from jaxrt._src.ray import Ray
 from jaxrt._src.result import IntersectionResult
@@ -240,9 +240,9 @@ def trace(intersector: Any, view: SceneView, rays: TraversalRays, host: Any = No
                 no_triangle = jnp.zeros((), scene.leaf_triangle.dtype)
                 triangles = jnp.where(rejected[:, None, None], no_triangle, scene.leaf_triangle)
                 scene = scene._replace(leaf_triangle=triangles, kernel_layout=None)
-        if BOUNDING_BOX.name in view.kinds or SPHERE.name in view.kinds:  # built-in functions and spheres
-            dtype = view.traversal.node_lower.dtype if backend == "cpu" else jnp.float32
-            moving.update(analytic=gpu.analytic_leaves(intersector.intersection_functions, view, dtype))
+        # the analytic rows (built-in functions, spheres): None where the scene's kinds need none
+        dtype = view.traversal.node_lower.dtype if backend == "cpu" else jnp.float32
+        moving.update(analytic=gpu.analytic_leaves(intersector.intersection_functions, view, dtype))
         return (cpu if backend == "cpu" else gpu).trace_scene(
             scene,
             view.layout,
