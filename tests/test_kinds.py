@@ -233,6 +233,25 @@ def test_no_module_compares_kinds_by_string():
     assert not found, "\n".join(found)
 
 
+#: The shared modules that reach a kind only through its ``Kind`` record (hooks) or by iterating over
+#: ``registry.KINDS``: a kind added through the registry (spheres) is named in none of them.
+KIND_FREE = ("leaves.py", "fields.py", "winding.py", "point_query.py", "checks.py", "pipeline.py", "kinds/__init__.py")
+
+
+@pytest.mark.parametrize("module", KIND_FREE)
+def test_shared_modules_name_no_registry_kind(module):
+    """The leaf tests, fields, point queries, checks and the pipeline import neither ``SPHERE`` nor the sphere
+    kind's module: a new kind reaches them through its hooks."""
+    tree = ast.parse((SRC / module).read_text())
+    named = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            named += [(node.module or "") + "." + a.name for a in node.names]
+        elif isinstance(node, ast.Name | ast.Attribute):
+            named.append(node.id if isinstance(node, ast.Name) else node.attr)
+    assert not [n for n in named if n == "SPHERE" or n.endswith(".SPHERE") or n.endswith("kinds.sphere")], module
+
+
 def test_functions_decline_before_filters():
     both = rt.Intersector(intersection_functions={1: _user_function}, filter=lambda c: True)
     infos = (_info(TRI, opaque=False), _info(BOX))

@@ -1,11 +1,12 @@
 """Leaf formulas written once, instantiated for JAX, Numba and Triton.
 
 A formula module (:mod:`.box`, :mod:`.triangle`, :mod:`.analytic`, :mod:`.point_triangle`, :mod:`.sphere`,
-:mod:`.curve`) is plain Python over scalars that imports its operations from :mod:`.vocabulary`. :func:`instance`
-executes the module's source once more per backend, in a fresh module whose operation names are then bound to
-that backend's namespace (:mod:`.ops_jax`, :mod:`.ops_numba`, :mod:`.ops_triton`), and wraps every function the
-source defines with the backend's compiler: none for JAX, ``numba.njit`` for the CPU traversal (inlined at
-Numba's IR level unless the module sets ``NUMBA_INLINE = False``), ``triton.jit`` for the GPU kernels.
+:mod:`.curve`: every module here but the operations, :data:`FORMULAS`) is plain Python over scalars that imports
+its operations from :mod:`.vocabulary`. :func:`instance` executes the module's source once more per backend, in a
+fresh module whose operation names are then bound to that backend's namespace (:mod:`.ops_jax`,
+:mod:`.ops_numba`, :mod:`.ops_triton`), and wraps every function the source defines with the backend's compiler:
+none for JAX, ``numba.njit`` for the CPU traversal (inlined at Numba's IR level unless the module sets
+``NUMBA_INLINE = False``), ``triton.jit`` for the GPU kernels.
 Calls between formulas resolve through the module's globals, so they reach the wrapped versions; Triton and
 Numba read a function's globals when they compile it, so they see the backend's operations.
 
@@ -22,6 +23,7 @@ import importlib
 import importlib.util
 import inspect
 import linecache
+import pkgutil
 import sys
 import types
 from collections.abc import Callable
@@ -30,8 +32,15 @@ __all__ = ["BACKENDS", "FORMULAS", "instance", "source_digest"]
 
 #: The backends a formula is instantiated for.
 BACKENDS = ("jax", "numba", "triton")
-#: The formula modules.
-FORMULAS = ("box", "triangle", "analytic", "point_triangle", "sphere", "curve")
+#: The formula modules: every module of this package but the operations (``vocabulary``, ``ops_*``), so that a
+#: new formula module is listed by being written.
+FORMULAS = tuple(
+    sorted(
+        m.name
+        for m in pkgutil.iter_modules(__path__)
+        if m.name not in ("vocabulary", "conftest") and not m.name.startswith("ops_")
+    )
+)
 
 
 def _compiler(backend: str, inline: bool = True) -> Callable[[Callable], Callable]:

@@ -1,2 +1,2 @@
-"""Primitive kinds: one definition per kind (:mod:`.triangle`, :mod:`.bounding_box`, :mod:`.curve`,
-:mod:`.sphere`), listed in :mod:`.registry`."""
+"""Primitive kinds: one definition per kind, each in its own module (:mod:`.triangle`, :mod:`.bounding_box`,
+...), listed in :data:`.registry.KINDS`."""

@@ -2,8 +2,9 @@
 and fields, and the kind of a geometry.
 
 Adding a kind: write its module (a :class:`~jaxrt._src.kinds.kind.Kind` with its leaf layout table, bounds,
-tests, tags and coverage), add it to :data:`KINDS`, and give it a leaf branch in each compiled loop that
-traces it (docs/design.md, "Kinds and layers").
+tests, tags, coverage and the hooks the leaf tests, fields, point queries and checks call), add it to
+:data:`KINDS`, and give it a leaf branch in each compiled loop that traces it (docs/design.md, "Kinds and
+layers").
 
 The coverage rule (:func:`declines`) is the one place that decides which traversal runs a scene: the portable
 traversal traces every kind; a compiled traversal (:data:`BACKENDS`) traces a scene when every kind present
