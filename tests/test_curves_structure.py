@@ -169,7 +169,7 @@ def test_specialisation_is_checked():
     with pytest.raises(ValueError, match="curve_basis='catmull_rom', but"):
         rt.Intersector(curve_basis="bezier").intersect(ray, curves)
     with pytest.raises(ValueError, match="geometry_types must name kinds"):
-        rt.Intersector(geometry_types=["sphere"])
+        rt.Intersector(geometry_types=["disk"])
     # A specialised intersector accepts the structure it describes (checked before anything compiles).
     specialised = rt.Intersector(
         geometry_types=[rt.IntersectionType.CURVE],
