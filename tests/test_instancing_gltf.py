@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import base64
-import hashlib
 import json
 from pathlib import Path
 
@@ -96,32 +95,20 @@ def _aimed(triangles: np.ndarray, rays: int, seed: int):
     return origin.astype(np.float32), (point - origin).astype(np.float32)
 
 
-#: The baked scene's hits by the bytes of its float32 triangles and rays: the engine's flat and nested loads
-#: give the same baked scene, built and traced once.
-_BAKED: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
-
-
-def _baked_hits(triangles: np.ndarray, origin: np.ndarray, direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(type, distance)`` of the rays against one primitive structure of ``triangles`` ``(F, 3, 3)`` float32."""
-    key = hashlib.sha256(b"".join(np.ascontiguousarray(a).tobytes() for a in (triangles, origin, direction)))
-    key = key.digest() + repr((triangles.shape, origin.shape)).encode()
-    if key not in _BAKED:
-        structure = rt.build_primitive_structure(rt.TriangleGeometry(triangles.reshape(-1, 3)))
-        baked = rt.Intersector().intersect(rt.Ray(origin, direction), structure)
-        _BAKED[key] = np.asarray(baked.type), np.asarray(baked.distance)
-    return _BAKED[key]
-
-
 def _compare_with_baked(scene, rays: int = 128, seed: int = 0) -> np.ndarray:
     """Trace the instanced scene and a baked copy of its world triangles; they agree on hits and distances."""
     world = scene.world_triangles()
     origin, direction = _aimed(world, rays, seed)
     ray = rt.Ray(origin, direction)
     instanced = rt.Intersector(rt.tags.instancing, rt.tags.max_levels(scene.levels)).intersect(ray, scene.structure)
-    baked = dict(zip(("type", "distance"), _baked_hits(world.astype(np.float32), origin, direction), strict=True))
+    baked = rt.Intersector().intersect(
+        ray, rt.build_primitive_structure(rt.TriangleGeometry(world.reshape(-1, 3).astype(np.float32)))
+    )
     hit = np.asarray(instanced.type) != 0
-    np.testing.assert_array_equal(hit, baked["type"] != 0)
-    np.testing.assert_allclose(np.asarray(instanced.distance)[hit], baked["distance"][hit], rtol=1e-4, atol=1e-4)
+    np.testing.assert_array_equal(hit, np.asarray(baked.type) != 0)
+    np.testing.assert_allclose(
+        np.asarray(instanced.distance)[hit], np.asarray(baked.distance)[hit], rtol=1e-4, atol=1e-4
+    )
     assert hit.mean() > 0.9
     return np.asarray(instanced.instance_count)
 
