@@ -204,8 +204,7 @@ def test_closest_point_gradients_match_finite_differences():
             return jnp.sum(rt.closest_point(p, s).distance)
 
         vertices = jnp.asarray(triangles, jnp.float64)
-        # One compiled program (eagerly, each operation of the build and its derivative compiles on its own).
-        grad_v, grad_p = jax.jit(jax.grad(total, argnums=(0, 1)))(vertices, jnp.asarray(points))
+        grad_v, grad_p = jax.grad(total, argnums=(0, 1))(vertices, jnp.asarray(points))
         grad_v, grad_p = np.asarray(grad_v), np.asarray(grad_p)
     h = 1e-6
 
