@@ -41,7 +41,8 @@ def test_distance_gradient_matches_float64_central_differences():
     origin = np.array([0.4, 0.3, 2.0])
     direction = np.array([0.05, -0.1, -1.0])
     with jax.enable_x64(True):
-        value, (g_vertices, g_origin, g_direction) = jax.value_and_grad(_distance, argnums=(0, 1, 2))(
+        # One compiled program (eagerly, each operation of the build and its derivative compiles on its own).
+        value, (g_vertices, g_origin, g_direction) = jax.jit(jax.value_and_grad(_distance, argnums=(0, 1, 2)))(
             jnp.asarray(VERTICES), jnp.asarray(origin), jnp.asarray(direction)
         )
         assert value.dtype == jnp.float64
@@ -77,7 +78,7 @@ def test_missed_and_disabled_rays_have_zero_gradients():
         hit = result.type == int(rt.IntersectionType.TRIANGLE)
         return jnp.sum(jnp.where(hit, result.distance + result.triangle_barycentric_coord.sum(-1), 0.0)), hit
 
-    (_, hit), grads = jax.value_and_grad(loss, argnums=(0, 1, 2), has_aux=True)(vertices, origin, direction)
+    (_, hit), grads = jax.jit(jax.value_and_grad(loss, argnums=(0, 1, 2), has_aux=True))(vertices, origin, direction)
     np.testing.assert_array_equal(np.asarray(hit), [True, False, False, False, False, False, False, False])
     g_vertices, g_origin, g_direction = (np.asarray(g) for g in grads)
     for name, g in (("vertices", g_vertices), ("origin", g_origin), ("direction", g_direction)):

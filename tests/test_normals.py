@@ -191,13 +191,16 @@ def test_normals_through_instances_every_curve_basis_and_type_with_gradients():
     rays = rt.Ray(jnp.asarray(origin, jnp.float32), jnp.asarray(direction, jnp.float32))
     weights = jnp.asarray(rng.normal(size=origin.shape), jnp.float32)
 
-    def traced(top_transforms):
+    def traced(top_transforms, spheres, curves, rays, weights):
         index = jnp.array([0, 1, 1], jnp.int32)
         structure = rt.build_instance_structure([spheres, curves], rt.Instances(index, top_transforms))
         hit = intersector.intersect(rays, structure)
         return jnp.sum(hit.normal * weights), hit
 
-    (_, hit), grad = jax.value_and_grad(traced, has_aux=True)(jnp.asarray(top))
+    # One compiled program for the build, the trace and the gradient (the scene passed as arguments, not
+    # folded in as constants): eagerly, each operation of the build and its derivative compiles on its own.
+    value_and_grad = jax.jit(jax.value_and_grad(traced, has_aux=True))
+    (_, hit), grad = value_and_grad(jnp.asarray(top), spheres, curves, rays, weights)
     hit = jax.tree_util.tree_map(np.asarray, dict(hit))
     grad = np.asarray(grad)
     assert np.isfinite(grad).all() and (np.abs(grad).sum(axis=(1, 2)) > 0).all()
@@ -267,6 +270,6 @@ def test_normal_gradients_are_finite_and_match_the_formula():
         n = jnp.cross(t[1] - t[0], t[2] - t[0])
         return jnp.sum(n / jnp.linalg.norm(n) * weights[0])
 
-    grad = jax.grad(traced)(vertices)
+    grad = jax.jit(jax.grad(traced))(vertices)  # one program (eagerly, each operation compiles on its own)
     assert np.isfinite(np.asarray(grad)).all()
     np.testing.assert_allclose(grad, jax.grad(formula)(vertices), atol=1e-5)

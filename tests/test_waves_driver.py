@@ -103,9 +103,11 @@ def trace_in_waves(intersector, structure, ray, first: int, later: int):
     return found
 
 
+@functools.partial(jax.jit, static_argnums=0)
 def _portable(intersector, structure, ray):
-    view = scene_view(structure)
-    return jax.jit(lambda r: pipeline._trace_portable(intersector, view, pipeline.sanitized_rays(r)))(ray)
+    """The portable traversal's result: one compiled program per intersector, shared by the parametrizations
+    (the structure and rays are arguments, not constants folded into each call's program)."""
+    return pipeline._trace_portable(intersector, scene_view(structure), pipeline.sanitized_rays(ray))
 
 
 def _intersector(**kw):
