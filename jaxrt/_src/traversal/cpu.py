@@ -315,12 +315,14 @@ _TRACED_ROWS: dict[tuple[int, int], tuple[Any, Any, np.ndarray]] = {}
 
 
 def _owner(view: np.ndarray, candidates: Any) -> Any:
-    """The live, ready JAX array among ``candidates`` whose buffer is ``view``'s memory, or ``None``."""
+    """The live, ready JAX array among ``candidates`` whose buffer is ``view``'s memory, or ``None``; arrays
+    sharded over several devices have no single buffer and are never owners."""
     for array in candidates:
         if (
             array is not None
             and array.shape == view.shape
             and array.dtype == view.dtype
+            and len(array.sharding.device_set) == 1
             and not array.is_deleted()
             and array.is_ready()  # a pending buffer's address would wait, holding the GIL
             and array.unsafe_buffer_pointer() == view.ctypes.data
