@@ -27,11 +27,10 @@ import math
 
 import numba
 import numpy as np
-from numba import types
-from numba.extending import intrinsic
 
 from jaxrt._src import formulas
 from jaxrt._src.formulas.ops_numba import key_caches_on_formulas
+from jaxrt._src.traversal.cpu_kernel import _fetch_add
 
 _f = formulas.instance("point_triangle", "numba")
 _closest_on_triangle = _f.closest_on_triangle
@@ -56,18 +55,6 @@ def constants(dtype) -> np.ndarray:
     """The walks' float constants in ``dtype``: 0, 1, ``inf``, ``4 pi`` (rounded to ``dtype`` as the portable
     walk rounds it), NaN."""
     return np.array([0.0, 1.0, np.inf, 4 * math.pi, np.nan], dtype)
-
-
-@intrinsic
-def _fetch_add(typingctx, counter, amount):
-    """``counter[0] += amount`` as one atomic step; returns the value before."""
-    sig = types.int64(counter, types.int64)
-
-    def codegen(context, builder, signature, args):
-        array = context.make_array(signature.args[0])(context, builder, args[0])
-        return builder.atomic_rmw("add", array.data, args[1], "monotonic")
-
-    return sig, codegen
 
 
 @numba.njit(cache=True, inline="always")
