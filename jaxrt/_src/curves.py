@@ -30,6 +30,7 @@ References:
 from __future__ import annotations
 
 import enum
+import functools
 from typing import Any, NamedTuple
 
 import jax
@@ -644,5 +645,6 @@ def curve_hit_fields(
     exact_t = jnp.where(is_curve, distance, 0.5)
     part = jnp.where(is_curve, exact[1], primitive.PART_TUBE)
     u = jnp.where(is_curve, stop(exact[0]), 0.5)
-    t, u = jax.vmap(primitive.smooth_hit)(ray_origin, ray_direction, segment, part, u, exact_t, t_min, t_max)
+    smooth = functools.partial(primitive.smooth_hit, curve_types=config["curve_types"])
+    t, u = jax.vmap(smooth)(ray_origin, ray_direction, segment, part, u, exact_t, t_min, t_max)
     return is_curve, t, u, part

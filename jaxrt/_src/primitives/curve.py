@@ -634,9 +634,18 @@ def _flat(q, dprev, has_previous, has_next, caps, lo, hi, noise, end_caps, optio
 POLISH_STEPS = 2
 
 
+@jax.custom_jvp
 def _attach(exact, smooth):
-    """``exact``'s value with ``smooth``'s derivative."""
-    return lax.stop_gradient(exact) + (smooth - lax.stop_gradient(smooth))
+    """``exact``'s value with ``smooth``'s derivative. A custom JVP rather than ``exact + (smooth -
+    stop(smooth))``: the value does not depend on ``smooth``, so a call that takes no derivative never computes
+    it (XLA drops it as dead code), and a non-finite ``smooth`` cannot turn the value into NaN."""
+    del smooth
+    return lax.stop_gradient(exact)
+
+
+@_attach.defjvp
+def _attach_jvp(primals, tangents):
+    return _attach(*primals), tangents[1]
 
 
 def _tube_system(origin, direction, power, u, t):
@@ -717,6 +726,7 @@ def smooth_hit(
     distance: jax.Array,
     t_min: jax.Array | float = -np.inf,
     t_max: jax.Array | float = np.inf,
+    curve_types: tuple[int, ...] = (ROUND, FLAT),
 ) -> tuple[jax.Array, jax.Array]:
     """``(distance, u)`` of a hit found by :func:`intersect`, with derivatives.
 
@@ -726,7 +736,8 @@ def smooth_hit(
     Values: a tube or ribbon hit is reported at its polished root (:data:`POLISH_STEPS` guarded Newton steps
     in the hit's space from the test's answer, which stops within its tolerance of the root: on the bench's
     fur about three times closer to the float64 reference, ``docs/curves.md``) where that root lies in
-    ``[t_min, t_max]``; other hits keep the test's values.
+    ``[t_min, t_max]``; other hits keep the test's values. ``curve_types``: the types that can have been hit
+    (static; the tube or ribbon equations of an absent type are not solved).
     """
     stop = lax.stop_gradient
     bezier = world_bezier(segment)
@@ -736,20 +747,25 @@ def smooth_hit(
 
     # Round tube: F = |O + t d - C|^2 - r^2 = 0, G = (O + t d - C) . C' + r r' = 0, linearised at the hit
     # polished to the root (the test accepts a hit within its tolerance, where the linearisation is off).
-    tube_u0, tube_t0 = _polish_tube(*fixed, u0, t0)
-    value, jac = _tube_system(origin, direction, power, tube_u0, tube_t0)
-    step = _solve2(stop(jac), value)
-    tube_u, tube_t = tube_u0 + step[0], tube_t0 + step[1]
+    tube_u0, tube_t0 = tube_u, tube_t = u0, t0  # (never selected where no round curve can be hit)
+    if ROUND in curve_types:
+        tube_u0, tube_t0 = _polish_tube(*fixed, u0, t0)
+        value, jac = _tube_system(origin, direction, power, tube_u0, tube_t0)
+        step = _solve2(stop(jac), value)
+        tube_u, tube_t = tube_u0 + step[0], tube_t0 + step[1]
 
     # Flat ribbon: g(u) = p . p' = 0 with p the part of C - O across the ray; t = (C(u) - O) . d / |d|^2.
     dd = jnp.dot(direction, direction)
-    ribbon_u0 = _polish_ribbon(*fixed, u0)
-    g, g_prime = _ribbon_system(origin, direction, power, ribbon_u0)
-    g_prime = stop(g_prime)
-    ribbon_u = ribbon_u0 - g / jnp.where(g_prime == 0, 1.0, g_prime)
-    along = lambda c: jnp.dot(c[:3] - origin, direction) / dd  # noqa: E731
-    ribbon_t = along(_evaluate(power, ribbon_u)[0])
-    ribbon_t0 = along(_evaluate(power, ribbon_u0)[0])  # the polished root's distance (used as a value only)
+    ribbon_u0 = ribbon_u = u0  # (never selected where no flat curve can be hit)
+    ribbon_t0 = ribbon_t = t0
+    if FLAT in curve_types:
+        ribbon_u0 = _polish_ribbon(*fixed, u0)
+        g, g_prime = _ribbon_system(origin, direction, power, ribbon_u0)
+        g_prime = stop(g_prime)
+        ribbon_u = ribbon_u0 - g / jnp.where(g_prime == 0, 1.0, g_prime)
+        along = lambda c: jnp.dot(c[:3] - origin, direction) / dd  # noqa: E731
+        ribbon_t = along(_evaluate(power, ribbon_u)[0])
+        ribbon_t0 = along(_evaluate(power, ribbon_u0)[0])  # the polished root's distance (used as a value only)
 
     # Caps at the end u0 (0 or 1): sphere entry, end disk, ray-facing disk.
     end = jnp.where(u0 > 0.5, bezier[3], bezier[0])
