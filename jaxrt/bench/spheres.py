@@ -11,7 +11,7 @@ Flags: ``--spheres`` (default 100,000 on a CPU, 1,000,000 on a GPU), ``--rays`` 
 a GPU), ``--check`` (rays compared with float64, default 1024), ``--repeats``, ``--backend`` (an intersector
 backend for every row, default ``auto``), ``--triangles`` (a third row: one triangle per sphere, inscribed in
 its great circle facing the camera, for the traversal's cost on as many primitives of the same extent; its
-errors are against the spheres, so not shown), ``--quick`` (tiny sizes), ``--json PATH``. Only jax and numpy
+errors are against the spheres, so not shown), ``--quality`` (tree qualities, comma-separated: ``fast``, ``high``, ``sah``; default ``fast``), ``--quick`` (tiny sizes), ``--json PATH``. Only jax and numpy
 are needed.
 """
 
@@ -57,10 +57,18 @@ def facing_triangles(center: np.ndarray, radius: np.ndarray, eye: tuple = EYE) -
 
 
 def bench(
-    count: int, n_rays: int, check: int, repeats: int, backend: str = "auto", seed: int = 0, triangles: bool = False
+    count: int,
+    n_rays: int,
+    check: int,
+    repeats: int,
+    backend: str = "auto",
+    seed: int = 0,
+    triangles: bool = False,
+    qualities: Sequence[str] = ("fast",),
 ) -> list[dict]:
     """The two rows (built-in spheres, boxes with the analytic sphere function) on the same spheres and rays,
-    and with ``triangles`` a third: one triangle per sphere (:func:`facing_triangles`)."""
+    and with ``triangles`` a third: one triangle per sphere (:func:`facing_triangles`); each for every tree
+    quality of ``qualities`` (``rt.build_primitive_structure``'s ``quality``)."""
     center, radius = random_spheres(count, seed)
     side = max(1, int(round(n_rays**0.5)))
     camera = rt.shading.pinhole_rays(side, side, eye=EYE, target=(0.0, 0.0, 0.0), fov_degrees=40.0)
@@ -82,10 +90,10 @@ def bench(
             ("one triangle per sphere", rt.TriangleGeometry(facing_triangles(center, radius).reshape(-1, 3)), None)
         )
     rows = []
-    for name, geometry, fns in cases:
+    for (name, geometry, fns), quality in ((case, q) for q in qualities for case in cases):
         intersector = rt.Intersector(backend=backend, intersection_functions=fns)
         counted = rt.Intersector(rt.tags.stats, backend=backend, intersection_functions=fns)
-        build, structure = timed(lambda g=geometry: rt.build_primitive_structure(g), repeats)
+        build, structure = timed(lambda g=geometry: rt.build_primitive_structure(g, quality=quality), repeats)
         fn = jax.jit(lambda r, s, i=intersector: i.intersect(r, s).distance)
         trace, distance = timed(lambda fn=fn, s=structure: fn(rays, s), repeats)
         distance = np.asarray(distance)[checked]
@@ -94,6 +102,7 @@ def bench(
         rows.append(
             {
                 "geometry": name,
+                "quality": quality,
                 "primitives": count,
                 "rays": int(origin.shape[0]),
                 "path": traversal_path(intersector, structure),
@@ -109,17 +118,19 @@ def bench(
 
 
 def _print(rows: list[dict]) -> None:
-    print(f"{'geometry':<40} {'path':<14} {'Mrays/s':>9} {'first s':>8} {'nodes/ray':>9} {'B/prim':>7} {'leaf B':>7} "
+    print(f"{'geometry':<40} {'tree':<5} {'path':<14} {'Mrays/s':>9} {'first s':>8} {'nodes/ray':>9} {'B/prim':>7} {'leaf B':>7} "
           f"{'med err':>9} {'max err':>9} {'mismatch':>8}")  # fmt: skip
     for r in rows:
         t = r["trace"]
         errors = (f"{r['median_rel_error']:>9.2e} {r['max_rel_error']:>9.2e} {r['hit_mismatches']:>8d}"
                   if "hit_mismatches" in r else f"{'-':>9} {'-':>9} {'-':>8}")  # fmt: skip
-        print(f"{r['geometry']:<40} {r['path']:<14} {t['mrays_s']:>9.2f} {t['first_s']:>8.2f} "
+        print(f"{r['geometry']:<40} {r['quality']:<5} {r['path']:<14} {t['mrays_s']:>9.2f} {t['first_s']:>8.2f} "
               f"{r['nodes_visited_per_ray']:>9.1f} {r['bytes_per_primitive']:>7.1f} {r['leaf_bytes_per_primitive']:>7.1f} "
               f"{errors}")  # fmt: skip
-    if len(rows) >= 2 and rows[1]["trace"]["mrays_s"] > 0:
-        print(f"built-in / boxes: {rows[0]['trace']['mrays_s'] / rows[1]['trace']['mrays_s']:.2f}x")
+    for quality in dict.fromkeys(r["quality"] for r in rows):
+        pair = [r for r in rows if r["quality"] == quality][:2]
+        if len(pair) == 2 and pair[1]["trace"]["mrays_s"] > 0:
+            print(f"built-in / boxes ({quality}): {pair[0]['trace']['mrays_s'] / pair[1]['trace']['mrays_s']:.2f}x")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -131,12 +142,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--backend", default="auto")
     parser.add_argument("--triangles", action="store_true")
+    parser.add_argument("--quality", default="fast", help="tree qualities, comma-separated (fast, high, sah)")
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--json", default=None)
     args = parser.parse_args(argv)
     if args.quick:
         args.spheres, args.rays, args.check, args.repeats = 200, 1 << 10, 64, 1
-    rows = bench(args.spheres, args.rays, args.check, args.repeats, args.backend, triangles=args.triangles)
+    qualities = tuple(q for q in args.quality.split(",") if q)
+    rows = bench(
+        args.spheres, args.rays, args.check, args.repeats, args.backend, triangles=args.triangles, qualities=qualities
+    )
     info = machine_info()
     print(f"# spheres={args.spheres} rays={args.rays} checked={args.check} repeats={args.repeats} {info}")
     _print(rows)
