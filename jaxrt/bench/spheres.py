@@ -93,7 +93,7 @@ def bench(
     for (name, geometry, fns), quality in ((case, q) for q in qualities for case in cases):
         intersector = rt.Intersector(backend=backend, intersection_functions=fns)
         counted = rt.Intersector(rt.tags.stats, backend=backend, intersection_functions=fns)
-        build, structure = timed(lambda g=geometry: rt.build_primitive_structure(g, quality=quality), repeats)
+        build, structure = timed(lambda g=geometry, q=quality: rt.build_primitive_structure(g, quality=q), repeats)
         fn = jax.jit(lambda r, s, i=intersector: i.intersect(r, s).distance)
         trace, distance = timed(lambda fn=fn, s=structure: fn(rays, s), repeats)
         distance = np.asarray(distance)[checked]
