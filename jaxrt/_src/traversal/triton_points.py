@@ -319,14 +319,11 @@ def _children(nodes_ptr, node, mask, LANES: tl.constexpr, VECTOR: tl.constexpr):
 
 @triton.jit
 def _triangle_rows(tri_ptr, k, mask, LANES: tl.constexpr, VECTOR: tl.constexpr):
-    """Leaf ``k``'s vertices from its packed row with three 16-byte loads (``VECTOR``) or nine."""
-    if VECTOR:
-        ax, bx, cx, _ = _quad(tri_ptr, k, 12, 0, mask, LANES, VECTOR)
-        ay, by, cy, _ = _quad(tri_ptr, k, 12, 4, mask, LANES, VECTOR)
-        az, bz, cz, _ = _quad(tri_ptr, k, 12, 8, mask, LANES, VECTOR)
-        return ax, ay, az, bx, by, bz, cx, cy, cz
-    else:
-        return _triangle(tri_ptr, k, mask)
+    """Leaf ``k``'s vertices from its packed row with three 16-byte loads (``VECTOR``) or twelve."""
+    ax, bx, cx, _ = _quad(tri_ptr, k, 12, 0, mask, LANES, VECTOR)
+    ay, by, cy, _ = _quad(tri_ptr, k, 12, 4, mask, LANES, VECTOR)
+    az, bz, cz, _ = _quad(tri_ptr, k, 12, 8, mask, LANES, VECTOR)
+    return ax, ay, az, bx, by, bz, cx, cy, cz
 
 
 @triton.jit
@@ -886,13 +883,16 @@ class Variant:
 VARIANTS = {
     "stack": Variant(),
     "near": Variant("near", vector_loads=True, leaf_batch=True, skip=True),
+    "near-scalar": Variant("near", leaf_batch=True, skip=True),
     "near-plain": Variant("near"),
     "near-noskip": Variant("near", vector_loads=True, leaf_batch=True),
     "near-32k": Variant("near", vector_loads=True, leaf_batch=True, skip=True, programs=1 << 15),
     "near-64": Variant("near", vector_loads=True, leaf_batch=True, skip=True, lanes=64),
     "refill": Variant("refill", vector_loads=True, leaf_batch=True, skip=True),
+    "refill-scalar": Variant("refill", leaf_batch=True, skip=True),
     "refill-4k": Variant("refill", vector_loads=True, leaf_batch=True, skip=True, programs=1 << 12),
     "stackless": Variant("stackless", vector_loads=True, leaf_batch=True, programs=0),
+    "stackless-scalar": Variant("stackless", leaf_batch=True, programs=0),
     "stackless-8k": Variant("stackless", vector_loads=True, leaf_batch=True),
 }
 #: The variant the point queries use (read at import from ``JAXRT_POINT_VARIANT``; set it, then clear JAX's
