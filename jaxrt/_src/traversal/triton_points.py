@@ -31,6 +31,9 @@ the same leaf and add the same fast winding terms in the same order (the same fl
   stack is popped only when no child is entered, with ``skip`` in a loop of its own until an entry lies within
   the radius. A stack entry holds the node and its box distance in one 8-byte word pair. The winding walk
   enters child 1 where it is opened (pushing child 0 if also opened), the stack walk's order.
+- ``refill`` (:func:`nearest_refill_kernel`, :func:`winding_refill_kernel`): the ``near`` walk, with a program
+  owning a run of consecutive points and a lane taking the next one as soon as its walk ends (Aila and Laine's
+  persistent threads, 2009), instead of the warp waiting for the slowest of each block of 32 points.
 - ``stackless`` (:func:`nearest_stackless_kernel`, :func:`winding_stackless_kernel`): no stack (Hapala et al.,
   "Efficient Stack-less BVH Traversal for Ray Tracing", SCCG 2011): a lane keeps its node, that node's
   parent and a direction. Going up from a child, the parent's two boxes are measured again (the same floats),
