@@ -127,3 +127,96 @@ def test_kernel_boxes_and_vmap(kernel_here):
     np.testing.assert_allclose(w, expected, atol=1e-6)
     mapped = jax.vmap(lambda p: rt.closest_point(p, structure, backend="gpu"))(np.stack([points, points[::-1]]))
     np.testing.assert_array_equal(np.asarray(mapped.primitive_id[1]), np.asarray(r.primitive_id)[::-1])
+
+
+def _variant_answers(structure, points, name: str, limit2=np.inf, winding_too: bool = True):
+    """The nearest leaves and fast winding numbers of the point kernels' variant ``name``, called directly."""
+    from jaxrt._src import point_query, winding
+    from jaxrt._src.traversal import triton_points
+
+    boxes, box_leaf = points_backend.box_leaves(structure, point_query._box_table(structure))
+    p = jnp.asarray(points)
+    leaf = np.asarray(triton_points.nearest(p, structure, boxes, box_leaf, jnp.float32(limit2), name))
+    if not winding_too:
+        return leaf
+    wind = triton_points.fast_winding(p, structure, boxes, box_leaf, winding._dipoles(structure, 2.0), name)
+    return leaf, np.asarray(wind)
+
+
+def _tested_variants() -> list[str]:
+    """On a GPU every variant whose code differs (a program cap aside); in the interpreter, where each walk takes
+    seconds, variants that between them take every code path (each walk, each flag on and off, programs
+    striding over blocks, lanes refilled)."""
+    import dataclasses
+
+    from jaxrt._src.traversal import triton_points
+
+    if ON_GPU:
+        codes = {}
+        for name, v in triton_points.VARIANTS.items():
+            codes.setdefault(dataclasses.replace(v, programs=None), name)
+        return list(dict.fromkeys([triton_points.VARIANT, *codes.values()]))
+    names = [triton_points.VARIANT, "near", "near-plain", "refill", "stackless-8k"]
+    chosen = [triton_points.VARIANTS[name] for name in names]
+    for field in ("vector_loads", "leaf_batch", "skip"):
+        assert {getattr(v, field) for v in chosen if v.walk == "near"} == {False, True}
+    assert {v.walk for v in chosen} == {"stack", "near", "refill", "stackless"}
+    return list(dict.fromkeys(names))
+
+
+def _variant_scenes():
+    """Three small structures with query points: a soup (two blocks of lanes), a closed octahedron with a cavity (points on its
+    vertices and edge midpoints: ties between the triangles that share them), and boxes beside a triangle;
+    each with NaN and infinite points."""
+    bad = np.array([[np.nan, 0, 0], [0, np.inf, 0], [-np.inf, 1, 2]], np.float32)
+    soup = _soup(4)
+    yield (
+        rt.build_primitive_structure(rt.TriangleGeometry(soup.reshape(-1, 3))),
+        np.random.default_rng(5).uniform(-1.5, 1.5, (40, 3)).astype(np.float32),
+    )
+    vertices, faces = _octahedron()
+    outer = rt.TriangleGeometry(vertices, faces)
+    inner = rt.TriangleGeometry(vertices * np.float32(0.3), faces[:, ::-1])
+    edges = 0.5 * (vertices[faces[:, 0]] + vertices[faces[:, 1]])
+    random = np.random.default_rng(6).uniform(-1.3, 1.3, (16, 3)).astype(np.float32)
+    points = np.concatenate([vertices, edges, 0.3 * edges, np.zeros((1, 3), np.float32), random, bad])
+    yield rt.build_primitive_structure([outer, inner]), points.astype(np.float32)
+    boxes = np.array([[[0, 0, 0], [1, 1, 1]], [[3, 0, 0], [4, 2, 1]], [[0, 3, 0], [1, 4, 1]]], np.float32)
+    triangle = rt.TriangleGeometry([[0.0, 5, 0], [1, 5, 0], [0, 6, 0]])
+    structure = rt.build_primitive_structure([rt.BoundingBoxGeometry(boxes[:, 0], boxes[:, 1]), triangle])
+    points = np.random.default_rng(7).uniform(-1, 6, (20, 3)).astype(np.float32)
+    yield structure, np.concatenate([points, bad])
+
+
+@kernel_test
+def test_kernel_variants_make_the_default_decisions(kernel_here, monkeypatch):
+    """Every kernel variant picks the default variant's leaf (ties included, also within a radius) and sums
+    the same fast winding number, bit for bit; NaN and infinite points take no step."""
+    from jaxrt._src.traversal import triton_points
+
+    monkeypatch.setattr(triton_points, "MAX_PROGRAMS", 1)  # one program strides over two blocks, or refills
+
+    default = triton_points.VARIANT
+    names = _tested_variants()
+    for i, (structure, points) in enumerate(_variant_scenes()):
+        want_leaf, want_wind = _variant_answers(structure, points, default)
+        bad = ~np.isfinite(points).all(axis=1)
+        assert (want_leaf[bad] == -1).all() and (want_leaf[~bad] >= 0).all() and np.isnan(want_wind[bad]).all()
+        if i == 1:  # within a radius: some points find no leaf
+            want_near = _variant_answers(structure, points, default, limit2=0.04, winding_too=False)
+            assert (want_near == -1).any() and (want_near >= 0).any()
+        for name in names:
+            leaf, wind = _variant_answers(structure, points, name)
+            np.testing.assert_array_equal(leaf, want_leaf, err_msg=name)
+            np.testing.assert_array_equal(wind, want_wind, err_msg=name)
+            if i == 1:
+                near = _variant_answers(structure, points, name, limit2=0.04, winding_too=False)
+                np.testing.assert_array_equal(near, want_near, err_msg=name)
+
+
+def test_unknown_variant_is_refused():
+    pytest.importorskip("triton")
+    from jaxrt._src.traversal import triton_points
+
+    with pytest.raises(ValueError, match="unknown point kernel variant 'nope'"):
+        triton_points.variant("nope")

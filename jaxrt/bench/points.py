@@ -14,7 +14,11 @@ a Gaussian of 1% of the bounding-box diagonal; half uniform in the bounding box 
   closest point, ``mesh_query_point_sign_winding_number`` for the signed distance) when ``warp`` imports.
 
 Flags: ``--scenes``, ``--points``, ``--reference-points``, ``--repeats``, ``--data-dir``, ``--quick``,
-``--peers``, ``--grid N [N ...]`` (dense ``rt.sdf_grid`` rows of ``N^3`` points), ``--backend`` (the walk: ``auto``, ``portable``, ``cpu``, ``gpu``), ``--json PATH``.
+``--peers``, ``--grid N [N ...]`` (dense ``rt.sdf_grid`` rows of ``N^3`` points), ``--backend`` (the walk: ``auto``, ``portable``, ``cpu``, ``gpu``), ``--json PATH``,
+``--variants a,b,c`` (``all``: every one): with the GPU walk, also each variant of the point kernels
+(:data:`jaxrt._src.traversal.triton_points.VARIANTS`) in the same process, the default variant first, on the
+same points held on the device; each variant's nearest leaves are checked against the default's (the count
+that differ) and its fast winding numbers too (the largest difference).
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ import jax
 import numpy as np
 
 import jaxrt as rt
+from jaxrt._src.traversal.points import resolve
 from jaxrt.bench.report import machine_info
 from jaxrt.bench.scenes import PROCEDURAL, SHARED_MESHES, load_scene
 from jaxrt.bench.timing import progress, timed
@@ -226,6 +231,11 @@ def bench_points(
             np.max(np.abs(warp["closest_values"] - np.asarray(closest.distance))) / diagonal
         )
         out["warp_sign_disagree"] = int(np.sum((warp["signed_values"] < 0) != (np.asarray(signed) < 0)))
+    if sizes.get("variants"):
+        if resolve(b, structure, "bench") == "gpu":
+            out["variants"] = bench_variants(sizes["variants"], points, structure, repeats, b)
+        else:
+            out["variants_skipped"] = "the variants are the GPU kernels'; this run walks elsewhere"
     lo, hi = vertices.min(0).astype(np.float64), vertices.max(0).astype(np.float64)
     bounds = np.stack([lo - 0.1 * (hi - lo), hi + 0.1 * (hi - lo)])
     for r in sizes.get("grids") or ():
@@ -239,6 +249,48 @@ def bench_points(
         want = np.asarray(rt.signed_distance(sample, structure, backend=b))
         got = np.asarray(grid)[index[:, 0], index[:, 1], index[:, 2]]
         out[f"grid_{r}"]["max_diff_rel"] = float(np.max(np.abs(got - want)) / diagonal)
+    return out
+
+
+def bench_variants(names: Sequence[str], points: np.ndarray, structure: Any, repeats: int, backend: str):
+    """Speeds of the point kernels' variants ``names`` (``["all"]``: every one) on ``points`` (moved to the
+    device once), the default variant first, and how each variant's nearest leaves and fast winding numbers
+    differ from the default's. Each variant is selected by :data:`triton_points.VARIANT` with JAX's caches
+    cleared (so the queries trace again); the default is restored afterwards."""
+    from jaxrt._src.traversal import triton_points
+
+    default = triton_points.VARIANT
+    names = list(triton_points.VARIANTS) if list(names) == ["all"] else list(names)
+    for name in names:
+        triton_points.variant(name)  # unknown names fail before any timing
+    order = [default] + [name for name in names if name != default]
+    device_points = jax.device_put(points)
+    n = len(points)
+    out: dict[str, Any] = {}
+    want_leaf = want_wind = None
+    try:
+        for name in order:
+            triton_points.VARIANT = name
+            jax.clear_caches()
+            p = device_points
+            t_closest, closest = timed(lambda p=p: rt.closest_point(p, structure, backend=backend), repeats)
+            t_signed, _ = timed(lambda p=p: rt.signed_distance(p, structure, backend=backend), repeats)
+            t_wind, wind = timed(lambda p=p: rt.winding_number(p, structure, backend=backend), repeats)
+            leaf, wind = np.asarray(closest.primitive_id), np.asarray(wind, np.float64)
+            if want_leaf is None:
+                want_leaf, want_wind = leaf, wind
+            diff = np.abs(wind - want_wind)
+            out[name] = {
+                "closest_point": t_closest.as_dict(n, "mpoints_s"),
+                "signed_distance": t_signed.as_dict(n, "mpoints_s"),
+                "winding_fast": t_wind.as_dict(n, "mpoints_s"),
+                "leaf_mismatch": int(np.sum(leaf != want_leaf)),
+                "winding_max_diff": float(np.max(np.where(np.isnan(diff), 0, diff))),
+                "winding_nan_mismatch": int(np.sum(np.isnan(wind) != np.isnan(want_wind))),
+            }
+    finally:
+        triton_points.VARIANT = default
+        jax.clear_caches()
     return out
 
 
@@ -285,6 +337,14 @@ def format_table(results: dict[str, Any]) -> str:
                 f"{g['median_s']:.2f} s; max |grid - signed_distance| {g['max_diff_rel']:.1e} diag (256 cells)"
             )
     lines.extend(warp_lines)
+    for r in results["scenes"]:
+        for name, v in r.get("variants", {}).items():
+            lines.append(
+                f"{r['scene']:8} variant {name:14} closest {v['closest_point']['mpoints_s']:8.3f}  signed "
+                f"{v['signed_distance']['mpoints_s']:8.3f}  winding {v['winding_fast']['mpoints_s']:8.3f} Mpt/s "
+                f"(device points); leaves != default {v['leaf_mismatch']}, max |w - w_default| "
+                f"{v['winding_max_diff']:.1e}"
+            )
     for name, why in results.get("skipped", {}).items():
         lines.append(f"{name}: skipped ({why})")
     return "\n".join(lines)
@@ -308,6 +368,11 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--backend", choices=("auto", "portable", "cpu", "gpu"), default="auto", help="the walk (default: auto)"
     )
+    parser.add_argument(
+        "--variants",
+        metavar="A,B,C",
+        help="also time these GPU point-kernel variants ('all': every one) against the default, same process",
+    )
     parser.add_argument("--json", metavar="PATH", help="also write every number and the machine info to PATH")
     return parser
 
@@ -318,6 +383,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     given = {k: getattr(args, k) for k in ("points", "reference_points", "repeats", "triangles")}
     sizes = {**(_QUICK if args.quick else _DEFAULTS), **{k: v for k, v in given.items() if v is not None}}
     sizes["grids"] = list(args.grid or ())
+    sizes["variants"] = [v for v in (args.variants or "").split(",") if v]
     config = dict(sizes, seed=args.seed, backend=args.backend)
     results: dict[str, Any] = {"machine": machine_info(), "config": config, "scenes": []}
     results["skipped"] = {}
@@ -327,12 +393,17 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             results["scenes"].append(row)
         except FileNotFoundError as error:
             results["skipped"][name] = str(error)
+        if args.json:  # after every scene, so that a run cut short keeps the scenes it finished
+            _write(args.json, results)
     print(format_table(results))
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(results, f, indent=1)
         print(f"wrote {args.json}")
     return results
+
+
+def _write(path: str, results: dict[str, Any]) -> None:
+    with open(path, "w") as f:
+        json.dump(results, f, indent=1)
 
 
 if __name__ == "__main__":
