@@ -81,4 +81,6 @@ BOUNDING_BOX = Kind(
     coverage={"gpu": Coverage(motion=False), "cpu": Coverage(motion=False)},
     function_code=_function_code,
     declines=_declines,
+    geometry="BoundingBoxGeometry",
+    float_array="lower",
 )

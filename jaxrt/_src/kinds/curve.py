@@ -52,4 +52,6 @@ CURVE = Kind(
         "gpu": Coverage(instanced=False, motion=False, alone=True, waves=False),
         "cpu": Coverage(instanced=False, motion=False, alone=True, waves=False),
     },
+    geometry="CurveGeometry",
+    float_array="control_points",
 )

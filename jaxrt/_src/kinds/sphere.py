@@ -32,7 +32,19 @@ import jax.numpy as jnp
 from jaxrt._src import formulas
 from jaxrt._src.kinds.kind import Coverage, Kind, LeafArray
 
-__all__ = ["SPHERE", "bounds", "checks", "closest_point", "dummy", "inside", "intersect", "normal", "rows", "unpack"]
+__all__ = [
+    "SPHERE",
+    "bounds",
+    "checks",
+    "closest_point",
+    "code_bounds",
+    "dummy",
+    "inside",
+    "intersect",
+    "normal",
+    "rows",
+    "unpack",
+]
 
 _formula = formulas.instance("sphere", "jax")
 
@@ -60,6 +72,13 @@ def bounds(row: jax.Array) -> tuple[jax.Array, jax.Array]:
     ok = valid(row)[..., None]
     r = radius[..., None]
     return jnp.where(ok, centre - r, jnp.inf), jnp.where(ok, centre + r, -jnp.inf)
+
+
+def code_bounds(row: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The point box of the centres of leaf rows ``(..., 3, 3)``, whose centre gives a sphere's Morton code (also
+    for a bad sphere, whose box is empty)."""
+    centre, _ = unpack(row)
+    return centre, centre
 
 
 def intersect(
@@ -139,4 +158,7 @@ SPHERE = Kind(
     dummy=dummy,
     inside=inside,
     checks=checks,
+    geometry="SphereGeometry",
+    code_bounds=code_bounds,
+    float_array="centers",
 )

@@ -59,4 +59,6 @@ TRIANGLE = Kind(
     fields={"triangle_barycentric_coord": "triangle_data", "triangle_front_facing": "triangle_data"},
     coverage={"gpu": Coverage(), "cpu": Coverage()},
     filter_code=_filter_code,
+    geometry="TriangleGeometry",
+    float_array="vertices",
 )
