@@ -30,10 +30,11 @@ import jax
 import jax.numpy as jnp
 
 from jaxrt._src import formulas
-from jaxrt._src.kinds.kind import Coverage, Kind, LeafArray
+from jaxrt._src.kinds.kind import AnalyticRow, Coverage, Kind, LeafArray
 
 __all__ = [
     "SPHERE",
+    "analytic_parameters",
     "bounds",
     "checks",
     "closest_point",
@@ -79,6 +80,13 @@ def code_bounds(row: jax.Array) -> tuple[jax.Array, jax.Array]:
     for a bad sphere, whose box is empty)."""
     centre, _ = unpack(row)
     return centre, centre
+
+
+def analytic_parameters(row: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """``(p, q, radius)`` of the compiled loops' analytic rows (code 5) from leaf rows ``(C, 3, 3)``: the centre,
+    zeros and the radius."""
+    centre, radius = unpack(row)
+    return centre, jnp.zeros_like(centre), radius
 
 
 def intersect(
@@ -149,7 +157,7 @@ SPHERE = Kind(
     closest_point=closest_point,
     tags=("sphere_data", "normal"),
     fields={"sphere_front_facing": "sphere_data"},
-    # the compiled traversals test sphere leaves as analytic rows (code 5), from the static leaf rows
+    # the compiled traversals test sphere leaves as analytic rows (code 5, ``analytic``), from the static leaf rows
     coverage={"gpu": Coverage(motion=False, waves=False), "cpu": Coverage(motion=False)},
     filter_code=_filter_code,
     formula_leaves=True,
@@ -160,5 +168,6 @@ SPHERE = Kind(
     checks=checks,
     geometry="SphereGeometry",
     code_bounds=code_bounds,
+    analytic=AnalyticRow(5, "sphere", "ray_sphere", ("px", "py", "pz", "radius"), 3, analytic_parameters),
     float_array="centers",
 )
