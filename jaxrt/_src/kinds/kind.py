@@ -142,6 +142,9 @@ class Kind:
       checks: ``geometry -> ((message, bad, value), ...)``: the rules of ``checks=True`` for a geometry of the
         kind: ``bad (N,)`` flags the bad rows of ``value (N, ...)``; ``message`` names the array with
         ``{index}`` and ``{value}`` (``None``: the kind has no rules, or :mod:`jaxrt._src.checks` writes them).
+      doc: what a hit of the kind is: the docstring of its ``rt.IntersectionType`` member.
+      tag_docs: the tags the kind defines, each with its docstring (``rt.tags.<name>``, added to
+        :mod:`jaxrt.tags` by the registry); ``tags`` lists them with the shared ones it also fills.
       geometry: the name of the kind's static geometry class, for messages (its keyframed variant is
         ``"Motion" + geometry``).
       float_array: the attribute of the kind's geometries whose dtype is the geometry's float type.
@@ -177,6 +180,8 @@ class Kind:
     dummy: Callable[[Any], tuple[Any, Any, Any]] | None = None
     inside: Callable[..., Any] | None = None
     checks: Callable[[Any], tuple[tuple[str, Any, Any], ...]] | None = None
+    doc: str = ""
+    tag_docs: Mapping[str, str] = dataclasses.field(default_factory=dict)
     geometry: str = ""
     float_array: str = ""
     code_bounds: Callable[..., Any] | None = None

@@ -166,6 +166,14 @@ SPHERE = Kind(
     dummy=dummy,
     inside=inside,
     checks=checks,
+    doc="A built-in sphere (``rt.SphereGeometry``).",
+    tag_docs={
+        "sphere_data": (
+            "Adds ``sphere_front_facing`` (sphere geometry): true where the ray enters the sphere at the hit, "
+            "false where it leaves it (a ray that starts inside the sphere, or enters it before its "
+            "``min_distance``); false off spheres."
+        ),
+    },
     geometry="SphereGeometry",
     code_bounds=code_bounds,
     analytic=AnalyticRow(5, "sphere", "ray_sphere", ("px", "py", "pz", "radius"), 3, analytic_parameters),

@@ -28,6 +28,7 @@ from jaxrt._src.kinds import registry
 from jaxrt._src.kinds.kind import ROW_COLUMNS, Kind
 
 __all__ = [
+    "ANALYTIC_SHAPES",
     "FORMULA_SHAPES",
     "ROW_KINDS",
     "SHAPES",
@@ -76,6 +77,8 @@ def shape_bit(code: int) -> int:
 
 #: The bits of the kinds' shapes (:data:`ROW_KINDS`) in ``shapes``.
 FORMULA_SHAPES = sum(1 << shape_bit(k.analytic.code) for k in ROW_KINDS)
+#: The bits of every shape of the dispatch: the built-in functions' (0-2) and the kinds'.
+ANALYTIC_SHAPES = 7 | FORMULA_SHAPES
 
 
 def _check() -> None:
@@ -102,20 +105,22 @@ def _targets(shape: Shape) -> str:
 _TRITON_RAY = "ox, oy, oz, dx, dy, dz, t_min, t_max"
 
 
-def triton_source() -> str:
-    """The source of ``analytic_hit`` (the kernel's leaf test of analytic rows) over :data:`SHAPES`."""
+def triton_source(shapes: tuple[Shape, ...] = SHAPES) -> str:
+    """The source of ``analytic_hit`` (the kernel's leaf test of analytic rows) over ``shapes``."""
     lines = [
         "@triton.jit",
         "def analytic_hit(",
-        "    code, mask, px, py, pz, qx, qy, qz, radius, ox, oy, oz, dx, dy, dz, t_min, t_max, SHAPES: tl.constexpr",
+        "    code, mask, px, py, pz, qx, qy, qz, radius, ox, oy, oz, dx, dy, dz, t_min, t_max, ANALYTIC: tl.constexpr",
         "):  # fmt: skip",
         '    """``(hit, distance)`` of analytic leaves where ``mask`` (``inf`` where not hit): each lane\'s shape by',
-        "    its ``code``. ``SHAPES`` (compile-time) has the bit of each shape the scene holds (``shape_bit``): only",
-        '    those are compiled, and with several each is computed only where some lane of the warp needs it."""',
+        "    its ``code``. ``SHAPES``, the bits of the shapes (``shape_bit``) in the kernel's compile-time ``ANALYTIC``",
+        "    (which also has bits for triangles and candidate boxes), says which shapes the scene holds: only those",
+        '    are compiled, and with several each is computed only where some lane of the warp needs it."""',
+        f"    SHAPES: tl.constexpr = ANALYTIC & {ANALYTIC_SHAPES}",
         "    hit = tl.zeros(mask.shape, tl.int1)",
         '    distance = tl.full(mask.shape, float("inf"), tl.float32)',
     ]
-    for shape in SHAPES:
+    for shape in shapes:
         call = f"{_targets(shape)} = {_name(shape)}({', '.join(shape.columns)}, {_TRITON_RAY})"
         lines += [
             f"    if (SHAPES & {1 << shape_bit(shape.code)}) != 0:",
@@ -150,12 +155,12 @@ def _branches(shapes: tuple[Shape, ...], read, indent: str) -> list[str]:
     return lines
 
 
-def numba_source() -> str:
-    """The source of the CPU loop's dispatch over :data:`SHAPES`: ``analytic`` (any analytic row, the kinds'
-    shapes first, then the built-in functions') and, for the lean loop of triangles and the kinds' leaves,
+def numba_source(shapes: tuple[Shape, ...] = SHAPES) -> str:
+    """The source of the CPU loop's dispatch over ``shapes`` (the built-in functions', then the kinds'):
+    ``analytic`` (any analytic row, the kinds' shapes first) and, for the lean loop of triangles and the kinds' leaves,
     ``is_formula_row`` and ``formula_row`` (a row of flat analytic rows at offset ``a``). The offsets ``_U1`` to
     ``_U7`` are the loop's unsigned constants."""
-    kinds = SHAPES[len(_BUILTIN) :]
+    kinds = shapes[len(_BUILTIN) :]
     row = lambda c: f"row[{_COLUMN[c]}]"  # noqa: E731
     flat = lambda c: "af[a]" if _COLUMN[c] == 0 else f"af[a + _U{_COLUMN[c]}]"  # noqa: E731
     lines = [
@@ -189,7 +194,7 @@ def numba_source() -> str:
 SOURCE_DIGEST = hashlib.sha256((triton_source() + numba_source()).encode()).hexdigest()
 
 
-def compile_source(name: str, source: str, namespace: dict) -> types.ModuleType:
+def compile_source(name: str, source: str, namespace: dict, shapes: tuple[Shape, ...] = SHAPES) -> types.ModuleType:
     """Execute generated ``source`` in a fresh module ``jaxrt._src.traversal.analytic_rows.<name>`` holding
     ``namespace`` (the names it calls) and the shapes' tests under :func:`_name`'s names (taken from
     ``namespace["tests"]``: ``(formula, test) -> function``); its source is registered in :mod:`linecache`."""
@@ -199,7 +204,7 @@ def compile_source(name: str, source: str, namespace: dict) -> types.ModuleType:
     module.__file__ = filename
     tests = namespace.pop("tests")
     module.__dict__.update(namespace)
-    for shape in SHAPES:
+    for shape in shapes:
         setattr(module, _name(shape), tests(shape.formula, shape.test))
     sys.modules[module.__name__] = module  # Triton looks functions' modules up by name
     exec(compile(source, filename, "exec"), module.__dict__)

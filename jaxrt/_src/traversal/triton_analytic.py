@@ -23,9 +23,6 @@ import triton.language as tl
 from jaxrt._src import formulas
 from jaxrt._src.traversal import analytic_rows
 
-#: The bits of ``ANALYTIC`` :func:`analytic_hit` reads: the built-in functions' shapes (bits 0-2) and the kinds'.
-ANALYTIC_SHAPES = tl.constexpr(7 | analytic_rows.FORMULA_SHAPES)
-
 
 @triton.jit
 def _any(flags):

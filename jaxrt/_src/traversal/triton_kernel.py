@@ -78,8 +78,8 @@ Analytic leaves (compile-time constant ``ANALYTIC``; 0 generates the triangle-on
 whose geometry uses a built-in intersection function, and the leaves of kinds with an analytic row (built-in
 spheres), carry their parameters in their triangle row, with the shape code in column 3 (0 for triangles;
 :func:`jaxrt._src.traversal.packed.pack_analytic`). :func:`_leaf` reads the code and runs
-:func:`jaxrt._src.traversal.triton_analytic.analytic_hit` (the shapes of the bits ``ANALYTIC_SHAPES`` of
-``ANALYTIC``: 0-2, and 5 on for the kinds) and, where bit 3 says the scene also holds triangles, the watertight test on the lanes with a
+:func:`jaxrt._src.traversal.triton_analytic.analytic_hit` (the shapes of bits 0-2 of ``ANALYTIC``, and
+from bit 5 on the kinds') and, where bit 3 says the scene also holds triangles, the watertight test on the lanes with a
 triangle, each behind a warp-uniform branch. The shapes see the ray of the current level (origin and
 unnormalised direction; the extended ray block carries the direction also without instances).
 """
@@ -90,7 +90,7 @@ import triton
 import triton.language as tl
 
 from jaxrt._src import formulas
-from jaxrt._src.traversal.triton_analytic import ANALYTIC_SHAPES, analytic_hit
+from jaxrt._src.traversal.triton_analytic import analytic_hit
 from jaxrt._src.traversal.triton_curves import curve_leaf, curve_ray, is_curve_leaf
 
 _box = formulas.instance("box", "triton")
@@ -288,9 +288,8 @@ def _leaf(
         qx, qy, qz, radius = _quad(tris_ptr, leaf, 12, 4, mask, LANES, VECTOR)
         shaped = mask & (code != 0)
         hit, distance = analytic_hit(
-            code, shaped, px, py, pz, qx, qy, qz, radius, ox, oy, oz, dx, dy, dz, t_min, t_max,
-            ANALYTIC & ANALYTIC_SHAPES,
-        )  # fmt: skip
+            code, shaped, px, py, pz, qx, qy, qz, radius, ox, oy, oz, dx, dy, dz, t_min, t_max, ANALYTIC
+        )
         if (ANALYTIC & 8) != 0:
             plain = mask & (code == 0)
             if tl.max(plain.to(tl.int32), axis=0) > 0:
