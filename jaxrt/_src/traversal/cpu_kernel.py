@@ -9,9 +9,9 @@ watertight test (Woop, Benthin, Wald 2013), the nearer inner child entered and t
 any-hit order of :func:`_first`), and the instance transition (ray moved by the instance's world-to-object
 rows, facing multiplied along the chain).
 :func:`trace_rays` is the general loop; :func:`trace_flat` the same loop for a primitive structure of triangles
-and the leaves of kinds with an analytic row (built-in spheres) with a nearest or any-hit query (no instance, hit-list or analytic bookkeeping per visit),
-which tests both child boxes of a node in one vector slab test (:func:`_box_pair`, on the node rows of
-:func:`box_rows`) for rays parallel to no axis.
+and the leaves of kinds with an analytic row (built-in spheres) with a nearest or any-hit query (no instance,
+hit-list or analytic bookkeeping per visit), which tests both child boxes of a node in one vector slab test
+(:func:`_box_pair`, on the node rows of :func:`box_rows`) for rays parallel to no axis.
 
 The leaf and box tests are the shared formulas of :mod:`jaxrt._src.formulas` (slab test, shear, watertight
 triangle, analytic shapes, curves through :mod:`jaxrt._src.traversal.cpu_curves`) instantiated for Numba; this
@@ -647,8 +647,8 @@ def trace_flat(
     formula_rows, analytic_rows,
 ):  # fmt: skip
     """:func:`trace_rays` for a primitive structure of triangles and the leaves of kinds with an analytic row
-    (built-in spheres; no instance levels, no hit list, no built-in intersection functions): the same loop without the instance, hit-list and analytic bookkeeping, and
-    the same results. The instance chain (zero columns) is not written. ``rows`` holds the node boxes as
+    (built-in spheres; no instance levels, no hit list, no built-in intersection functions): the same loop
+    without the instance, hit-list and analytic bookkeeping, and the same results. The instance chain (zero columns) is not written. ``rows`` holds the node boxes as
     :func:`box_rows` lays them out, for the vector test; the scalar test reads ``node_lower`` and
     ``node_upper``. With ``moving`` (triangles only), the primitive keyframe motion of :func:`trace_rays` (its
     ``node_keys_*`` to ``time_all`` arguments): each visited node's boxes and each tested triangle are blended
