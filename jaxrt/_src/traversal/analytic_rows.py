@@ -178,7 +178,8 @@ def numba_source(shapes: tuple[Shape, ...] = SHAPES) -> str:
         "",
         "",
         "def formula_row(af, a, ox, oy, oz, dx, dy, dz, t_min, t_max, inf):",
-        '    """``(accepted, distance)`` of the kind\'s row at offset ``a`` of the flat rows ``af``."""',
+        '    """``(hit, distance)`` of the kind\'s row at offset ``a`` of the flat rows ``af`` (the distance is the',
+        '    formula\'s also without a hit)."""',
     ]
     if len(kinds) > 1:
         lines.append("    code = af[a + _U3]")
@@ -186,7 +187,7 @@ def numba_source(shapes: tuple[Shape, ...] = SHAPES) -> str:
         lines += _branches(kinds, flat, "    ")
     else:
         lines += ["    ok, t = False, inf"]
-    lines += ["    if not ok:", "        t = inf", "    return ok, t"]
+    lines += ["    return ok, t"]
     return "\n".join(lines) + "\n"
 
 

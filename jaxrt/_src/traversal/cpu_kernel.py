@@ -727,6 +727,8 @@ def trace_flat(
                     a = np.uint64(-1 - c0) * width
                     if formula_rows and _is_formula_row(af[a + _U3]):  # a kind's analytic row (built-in sphere)
                         ok0, t0 = _formula_row(af, a, o0, o1, o2, w0, w1, w2, t_min, distance, inf)
+                        if not ok0:
+                            t0 = inf
                     elif moving:  # the triangle blended at the ray's time; a moving one may vanish
                         _leaf_keys(leaf_keys, leaf_key, -1 - c0, leaf_w, one, key_v)
                         ok0, t0 = _triangle_at(key_v, _U1 - _U1, ux, uy, uz, ox, oy, oz, sx, sy, sz, t_min, distance, cull, inf)  # fmt: skip
@@ -739,6 +741,8 @@ def trace_flat(
                     a = np.uint64(-1 - c1) * width
                     if formula_rows and _is_formula_row(af[a + _U3]):  # a kind's analytic row (built-in sphere)
                         ok1, t1 = _formula_row(af, a, o0, o1, o2, w0, w1, w2, t_min, distance, inf)
+                        if not ok1:
+                            t1 = inf
                     elif moving:
                         _leaf_keys(leaf_keys, leaf_key, -1 - c1, leaf_w, one, key_v)
                         ok1, t1 = _triangle_at(key_v, _U1 - _U1, ux, uy, uz, ox, oy, oz, sx, sy, sz, t_min, distance, cull, inf)  # fmt: skip
