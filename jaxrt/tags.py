@@ -1,5 +1,9 @@
 """Metal-style intersection tags: each asks for result fields (and only then compiles their work).
 
+The tags of the scene (instancing, motion, primitive data, normals, counters) are defined here; each primitive
+kind defines its own (``triangle_data``, ``curve_data``, ``sphere_data``) in its record of the kind registry,
+which adds them to this module when ``jaxrt`` is imported.
+
 Examples:
   >>> import jaxrt as rt
   >>> rt.Intersector(rt.tags.triangle_data).tags
@@ -12,9 +16,6 @@ import dataclasses
 
 __all__ = [
     "Tag",
-    "triangle_data",
-    "curve_data",
-    "sphere_data",
     "instancing",
     "max_levels",
     "world_space_data",
@@ -35,13 +36,6 @@ class Tag:
     value: int | None = None
 
 
-triangle_data = Tag("triangle_data")
-"""Adds ``triangle_barycentric_coord`` ``(..., 2)`` and ``triangle_front_facing`` to the result."""
-curve_data = Tag("curve_data")
-"""Adds ``curve_parameter`` (curve geometry)."""
-sphere_data = Tag("sphere_data")
-"""Adds ``sphere_front_facing`` (sphere geometry): true where the ray enters the sphere at the hit, false where it
-leaves it (a ray that starts inside the sphere, or enters it before its ``min_distance``); false off spheres."""
 instancing = Tag("instancing")
 """Allows instance structures; adds ``instance_id`` and ``user_instance_id`` ``(..., n)`` and ``instance_count``
 (``n`` from :func:`max_levels`, 1 without it)."""
@@ -84,11 +78,9 @@ def max_levels(n: int) -> Tag:
     return Tag("max_levels", n)
 
 
+#: The names of every tag: those above, ``max_levels``, and the kinds' tags (:func:`define`).
 KNOWN = frozenset(
     [
-        "triangle_data",
-        "curve_data",
-        "sphere_data",
         "instancing",
         "max_levels",
         "world_space_data",
@@ -100,3 +92,19 @@ KNOWN = frozenset(
         "normal",
     ]
 )
+#: The docstrings of the kinds' tags, by name (:func:`define`).
+KIND_TAG_DOCS: dict[str, str] = {}
+
+
+def define(name: str, doc: str) -> Tag:
+    """Define the tag ``name`` of a primitive kind in this module (the kind registry calls it for each kind's
+    ``tag_docs`` at import): ``jaxrt.tags.<name>``, listed in ``__all__`` and :data:`KNOWN`."""
+    global KNOWN
+    tag = globals().get(name)
+    if tag is None:
+        tag = Tag(name)
+        globals()[name] = tag
+        __all__.append(name)
+        KNOWN = KNOWN | {name}
+    KIND_TAG_DOCS[name] = doc
+    return tag

@@ -10,6 +10,11 @@
 
 Both rewrite the docstring text before it is parsed.
 
+- **The kinds' public names.** ``rt.IntersectionType`` and the kinds' tags in ``rt.tags`` are built at import
+  from the kind registry (one member and its tags per kind), so the source the reference is read from does not
+  list them: the enum is documented as the class it is, with one member per kind, and each kind's tag as an
+  attribute of ``jaxrt.tags``, with the docstrings the kinds declare.
+
 - **Plumbing.** Special methods (``__repr__``, ``__new__``, ...; ``__init__``, merged into its class's entry,
   and ``__call__`` stay) and the pytree protocol
   (``tree_flatten``, ``tree_unflatten``) of the public classes are left out of the reference.
@@ -89,9 +94,47 @@ def is_plumbing(name: str) -> bool:
     return special or name in PLUMBING
 
 
+def _attribute(name: str, value: str, doc: str, label: str) -> griffe.Attribute:
+    attribute = griffe.Attribute(name, value=value)
+    attribute.docstring = griffe.Docstring(replace_roles(doc), parent=attribute)
+    attribute.labels.add(label)
+    return attribute
+
+
+def add_kind_names(mod: griffe.Module) -> None:
+    """Document what the kind registry adds at import: the members of ``IntersectionType`` (in
+    ``jaxrt._src.result``) and the kinds' tags (in ``jaxrt.tags``)."""
+    if mod.path not in ("jaxrt.tags", "jaxrt._src.result"):
+        return
+    from jaxrt import tags
+    from jaxrt._src import result
+    from jaxrt._src.kinds import registry
+
+    if mod.path == "jaxrt.tags":
+        for name, doc in tags.KIND_TAG_DOCS.items():
+            mod.set_member(name, _attribute(name, f'Tag("{name}")', doc, "module-attribute"))
+            if mod.exports is not None and name not in mod.exports:
+                mod.exports.append(name)
+        return
+    old = mod.members["IntersectionType"]
+    cls = griffe.Class("IntersectionType", lineno=old.lineno, endlineno=old.endlineno, bases=["enum.IntEnum"])
+    cls.docstring = griffe.Docstring(
+        "What a ray hit (Metal's ``intersection_type``): ``NONE``, or the kind of the hit primitive (one member "
+        "per kind of the kind registry).",
+        parent=cls,
+    )
+    docs = {"NONE": result.NONE_DOC, **{k.name.upper(): k.doc for k in registry.KINDS}}
+    for member in result.IntersectionType:
+        cls.set_member(member.name, _attribute(member.name, str(member.value), docs[member.name], "class-attribute"))
+    mod.set_member("IntersectionType", cls)
+
+
 class JaxrtDocstrings(griffe.Extension):
-    """Rewrites every docstring as it is loaded (grouped parameters split, Sphinx roles as links) and drops
-    the plumbing members of classes."""
+    """Rewrites every docstring as it is loaded (grouped parameters split, Sphinx roles as links), drops
+    the plumbing members of classes and documents the names the kind registry adds."""
+
+    def on_module_members(self, *, mod: griffe.Module, **kwargs: Any) -> None:
+        add_kind_names(mod)
 
     def on_class_members(self, *, cls: griffe.Class, **kwargs: Any) -> None:
         for name in [name for name in cls.members if is_plumbing(name)]:

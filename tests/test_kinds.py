@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import ast
 import dataclasses
+import enum
 from pathlib import Path
 
 import pytest
@@ -13,7 +14,7 @@ from jaxrt._src import intersector as intersector_module
 from jaxrt._src import pipeline, result
 from jaxrt._src.kinds import registry
 from jaxrt._src.structures import GeometryInfo, PrimitiveAccelerationStructure
-from jaxrt._src.traversal import gpu, waves
+from jaxrt._src.traversal import analytic_rows, gpu, waves
 
 SRC = Path(__file__).resolve().parents[1] / "jaxrt" / "_src"
 
@@ -235,21 +236,41 @@ def test_no_module_compares_kinds_by_string():
 
 #: The shared modules that reach a kind only through its ``Kind`` record (hooks) or by iterating over
 #: ``registry.KINDS``: a kind added through the registry (spheres) is named in none of them.
-KIND_FREE = ("leaves.py", "fields.py", "winding.py", "point_query.py", "checks.py", "pipeline.py", "kinds/__init__.py")
+KIND_FREE = (
+    "leaves.py",
+    "fields.py",
+    "winding.py",
+    "point_query.py",
+    "checks.py",
+    "pipeline.py",
+    "kinds/__init__.py",
+    "structures.py",
+    "result.py",
+    "../tags.py",
+    "traversal/gpu.py",
+    "traversal/cpu.py",
+    "traversal/cpu_kernel.py",
+    "traversal/triton_analytic.py",
+    "traversal/triton_kernel.py",
+)
 
 
 @pytest.mark.parametrize("module", KIND_FREE)
 def test_shared_modules_name_no_registry_kind(module):
-    """The leaf tests, fields, point queries, checks and the pipeline import neither ``SPHERE`` nor the sphere
-    kind's module: a new kind reaches them through its hooks."""
+    """The leaf tests, fields, point queries, checks, the pipeline, the build, the public enum and tags and the
+    compiled loops import neither ``SPHERE`` nor the sphere kind's module: a new kind reaches them through its
+    hooks and the registry."""
     tree = ast.parse((SRC / module).read_text())
-    named = []
+    imported, named = [], []
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom):
-            named += [(node.module or "") + "." + a.name for a in node.names]
-        elif isinstance(node, ast.Name | ast.Attribute):
-            named.append(node.id if isinstance(node, ast.Name) else node.attr)
-    assert not [n for n in named if n == "SPHERE" or n.endswith(".SPHERE") or n.endswith("kinds.sphere")], module
+            imported += [(node.module or "") + "." + a.name for a in node.names]
+        elif isinstance(node, ast.Attribute):
+            named.append("." + node.attr)
+        elif isinstance(node, ast.Name):  # a bare ``SPHERE`` only where imported (the kernel's SPHERE: sphere caps)
+            named.append(node.id)
+    names = imported + [n for n in named if not n == "SPHERE" or any(i.endswith(".SPHERE") for i in imported)]
+    assert not [n for n in names if n == "SPHERE" or n.endswith(".SPHERE") or n.endswith("kinds.sphere")], module
 
 
 def test_functions_decline_before_filters():
@@ -257,3 +278,60 @@ def test_functions_decline_before_filters():
     infos = (_info(TRI, opaque=False), _info(BOX))
     assert "user intersection functions" in pipeline.kernel_declines(both, infos, "cpu")
     assert pipeline.kernel_declines(both, infos, "gpu") is None
+
+
+def test_public_names_derive_from_the_registry():
+    """``rt.IntersectionType`` has one member per kind, and ``rt.tags`` each kind's own tags."""
+    members = {m.name: m.value for m in rt.IntersectionType}
+    assert members == {"NONE": 0, **{k.name.upper(): k.intersection_type for k in registry.KINDS}}
+    assert issubclass(rt.IntersectionType, enum.IntEnum) and rt.IntersectionType.SPHERE == 4
+    for kind in registry.KINDS:
+        assert kind.doc and kind.geometry and kind.float_array
+        assert set(kind.tag_docs) <= set(kind.tags)
+        for name in kind.tag_docs:
+            assert getattr(rt.tags, name) == rt.tags.Tag(name) and name in rt.tags.__all__
+    assert rt.tags.KNOWN == registry.RESULT_TAGS
+    assert [k.geometry for k in registry.KINDS] == [c.__name__ for c in (rt.TriangleGeometry, rt.BoundingBoxGeometry, rt.CurveGeometry, rt.SphereGeometry)]  # fmt: skip
+
+
+def test_analytic_rows_derive_from_the_registry():
+    codes = [k.analytic.code for k in registry.KINDS if k.analytic is not None]
+    assert codes == [5] and analytic_rows.FORMULA_SHAPES == 1 << 5
+    assert [k.analytic.code for k in analytic_rows.ROW_KINDS] == sorted(codes)
+    for kind in analytic_rows.ROW_KINDS:
+        assert kind.formula_leaves and kind.analytic.code >= 5 and analytic_rows.shape_bit(kind.analytic.code) != 3
+    source = analytic_rows.triton_source()
+    assert "    SHAPES: tl.constexpr = ANALYTIC & 39\n" in source
+    assert "if (SHAPES & 32) != 0:\n        lanes = mask & (code == 5.0)" in source
+    assert "h, t, _ = _sphere_ray_sphere(px, py, pz, radius, ox, oy, oz, dx, dy, dz, t_min, t_max)" in source
+
+
+def test_generated_dispatch_takes_a_new_kind():
+    """A second kind with an analytic row (here the sphere formula again, code 6) is dispatched by the generated
+    Numba functions without an edit to the loop."""
+    numba = pytest.importorskip("numba")
+    import numpy as np
+
+    from jaxrt._src import formulas
+
+    shapes = (*analytic_rows.SHAPES, analytic_rows.Shape(6, "sphere", "ray_sphere", ("px", "py", "pz", "radius"), 3))
+    u = {f"_U{i}": np.uint64(i) for i in range(1, 8)}
+    tests = lambda module, name: getattr(formulas.instance(module, "numba"), name)  # noqa: E731
+    source = analytic_rows.numba_source(shapes)
+    module = analytic_rows.compile_source("test_new_kind", source, dict(np=np, **u, tests=tests), shapes)
+    analytic = numba.njit(module.analytic)
+    is_formula_row = numba.njit(module.is_formula_row)
+    formula_row = numba.njit(module.formula_row)
+    ray_sphere = formulas.instance("sphere", "numba").ray_sphere
+    inf = np.inf
+    for code in (5.0, 6.0):
+        row = np.array([0.0, 0.0, 0.0, code, 0.0, 0.0, 0.0, 2.0, 0.0, 0.0, 0.0, 0.0])
+        assert is_formula_row(row[3])
+        args = (0.0, 0.0, -5.0, 0.0, 0.0, 1.0, 0.0, inf)
+        want = ray_sphere(0.0, 0.0, 0.0, 2.0, *args)[:2]
+        assert want == (True, 3.0)
+        assert analytic(row, *args, 1.0, inf) == want
+        assert formula_row(row, np.uint64(0), *args, inf) == want
+    assert not is_formula_row(1.0) and not is_formula_row(0.0)
+    disk = np.array([0.0, 0.0, 0.0, 2.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0])
+    assert analytic(disk, 0.0, 0.0, -5.0, 0.0, 0.0, 1.0, 0.0, inf, 1.0, inf) == (True, 5.0)

@@ -514,7 +514,7 @@ def test_cpu_lean_loop_with_triangles(dtype, monkeypatch):
         for options in ({}, {"accept_any_intersection": True, "triangle_cull_mode": "back"}):
             intersector, portable = (rt.Intersector(*tags, backend=b, **options) for b in ("cpu", "portable"))
             params, arrays = pipeline.cpu_kernel_arguments(structure, ray, intersector)
-            assert params[9] == cpu._SPHERES
+            assert params[9] == cpu._FORMULA_ROWS
             count = len(calls)
             lean_out = cpu._run(params, arrays)
             general_out = cpu._run((*params[:9], 1, *params[10:]), arrays)  # analytic code 1: the general loop

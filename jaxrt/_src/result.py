@@ -13,19 +13,25 @@ from jaxrt._src.kinds import registry
 __all__ = ["IntersectionType", "IntersectionResult", "FIELD_TAGS"]
 
 
-class IntersectionType(enum.IntEnum):
-    """What a ray hit (Metal's ``intersection_type``)."""
+#: What a ray that hits nothing reports.
+NONE_DOC = "The ray missed (or was disabled)."
 
-    NONE = 0
-    """The ray missed (or was disabled)."""
-    TRIANGLE = 1
-    """A triangle."""
-    BOUNDING_BOX = 2
-    """A bounding-box primitive, accepted by its intersection function."""
-    CURVE = 3
-    """A curve segment."""
-    SPHERE = 4
-    """A built-in sphere (``rt.SphereGeometry``)."""
+
+def _intersection_type() -> type[enum.IntEnum]:
+    """``IntersectionType``, one member per kind of the registry (its ``intersection_type`` and ``doc``)."""
+    members = {"NONE": 0, **{k.name.upper(): k.intersection_type for k in registry.KINDS}}
+    cls = enum.IntEnum("IntersectionType", members, module=__name__, qualname="IntersectionType")
+    docs = {"NONE": NONE_DOC, **{k.name.upper(): k.doc for k in registry.KINDS}}
+    cls.__doc__ = (
+        "What a ray hit (Metal's ``intersection_type``): one member per primitive kind.\n\nMembers:\n"
+        + "".join(f"  {name} ({members[name]}): {doc}\n" for name, doc in docs.items())
+    )
+    return cls
+
+
+#: What a ray hit (Metal's ``intersection_type``): ``NONE`` and one member per primitive kind of the registry
+#: (``TRIANGLE`` 1, ``BOUNDING_BOX`` 2, ``CURVE`` 3, ``SPHERE`` 4, ...).
+IntersectionType = _intersection_type()
 
 
 #: The tag that adds each optional result field (the kinds' own and the scene's,

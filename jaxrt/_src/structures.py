@@ -77,15 +77,15 @@ from jaxrt._src.bvh.morton import morton_codes
 from jaxrt._src.bvh.ploc import restructure
 from jaxrt._src.bvh.radix_tree import build_radix_tree, tree_depth_bound
 from jaxrt._src.checks import check_geometries
-from jaxrt._src.curves import CurveGeometry, CurveInfo, MotionCurveGeometry, curve_leaves
-from jaxrt._src.geometry import BoundingBoxGeometry, MotionBoundingBoxGeometry, MotionTriangleGeometry, TriangleGeometry
+from jaxrt._src.curves import CurveInfo, curve_leaves
+from jaxrt._src.geometry import TriangleGeometry
 from jaxrt._src.kinds import registry
-from jaxrt._src.kinds.registry import BOUNDING_BOX, CURVE, SPHERE, TRIANGLE
+from jaxrt._src.kinds.kind import Kind
+from jaxrt._src.kinds.registry import BOUNDING_BOX, CURVE, TRIANGLE
 from jaxrt._src.motion import MotionSpec, motion_bounds
 from jaxrt._src.numerics import full_precision
 from jaxrt._src.primitive_data import gather_leaf_data, primitive_data_layout
 from jaxrt._src.primitives import triangle
-from jaxrt._src.spheres import MotionSphereGeometry, SphereGeometry
 
 __all__ = [
     "PrimitiveAccelerationStructure",
@@ -174,26 +174,39 @@ def capacity_bucket(count: int, capacity: int | None = None) -> int:
     return max(2, 1 << (max(count, 1) - 1).bit_length())
 
 
-_MOTION_CLASSES = (MotionTriangleGeometry, MotionCurveGeometry, MotionBoundingBoxGeometry, MotionSphereGeometry)
-_GEOMETRY_CLASSES = (TriangleGeometry, CurveGeometry, BoundingBoxGeometry, SphereGeometry, *_MOTION_CLASSES)
+def _is_geometry(g: Any) -> bool:
+    """Whether ``g`` is a geometry: an object whose class names a kind of the registry (the geometry protocol of
+    :class:`~jaxrt._src.kinds.kind.Kind`)."""
+    name = getattr(type(g), "kind", None)
+    return isinstance(name, str) and any(k.name == name for k in registry.KINDS)
+
+
+def _moves(g: Any) -> bool:
+    """Whether ``g`` is a keyframed geometry (``Motion*Geometry``)."""
+    return bool(getattr(g, "motion", False))
+
+
+def _class_names(motion: bool = False) -> str:
+    """The geometry classes of every kind, for messages."""
+    return ", ".join(("Motion" if motion else "") + k.geometry for k in registry.KINDS)
 
 
 def geometry_info(g: Any) -> GeometryInfo:
     """The static :class:`GeometryInfo` of a geometry."""
-    curve = g.info if isinstance(g, CurveGeometry | MotionCurveGeometry) else None
-    return GeometryInfo(g.kind, g.opaque, curve, isinstance(g, _MOTION_CLASSES))
+    curve = g.info if CURVE.holds(g) else None
+    return GeometryInfo(g.kind, g.opaque, curve, _moves(g))
 
 
 def _keyframe_count(geometries: tuple, motion: Any, owner: str) -> int:
     """The common keyframe count of the motion geometries (1 without any), checked against ``motion``."""
-    counts = {i: g.keyframe_count for i, g in enumerate(geometries) if isinstance(g, _MOTION_CLASSES)}
+    counts = {i: g.keyframe_count for i, g in enumerate(geometries) if _moves(g)}
     if motion is not None and not isinstance(motion, MotionSpec):
         raise TypeError(f"{owner}: motion must be an rt.MotionSpec or None, got {motion!r}")
     if not counts:
         if motion is not None:
             raise ValueError(
-                f"{owner}: motion={motion} needs at least one Motion*Geometry (MotionTriangleGeometry, "
-                "MotionCurveGeometry, MotionBoundingBoxGeometry) among the geometries"
+                f"{owner}: motion={motion} needs at least one Motion*Geometry ({_class_names(motion=True)}) among "
+                "the geometries"
             )
         return 1
     if motion is None:
@@ -212,12 +225,12 @@ def _keyframe_count(geometries: tuple, motion: Any, owner: str) -> int:
 
 def _keyframes(geometries: tuple, count: int) -> list[tuple]:
     """The static geometries of every keyframe (static geometries repeat)."""
-    return [tuple(g.keyframe(k) if isinstance(g, _MOTION_CLASSES) else g for g in geometries) for k in range(count)]
+    return [tuple(g.keyframe(k) if _moves(g) else g for g in geometries) for k in range(count)]
 
 
 def as_geometry_tuple(geometries: Any) -> tuple[TriangleGeometry, ...]:
     """``geometries`` (one or a sequence) as a tuple, checked (named ``TypeError`` and ``ValueError``)."""
-    if isinstance(geometries, _GEOMETRY_CLASSES):
+    if _is_geometry(geometries):
         geometries = (geometries,)
     if not isinstance(geometries, Sequence) or isinstance(geometries, str):
         raise TypeError(
@@ -227,11 +240,10 @@ def as_geometry_tuple(geometries: Any) -> tuple[TriangleGeometry, ...]:
     if not geometries:
         raise ValueError("build_primitive_structure: geometries is empty; a structure needs at least one geometry")
     for index, geometry in enumerate(geometries):
-        if not isinstance(geometry, _GEOMETRY_CLASSES):
+        if not _is_geometry(geometry):
             raise TypeError(
                 f"build_primitive_structure: geometries[{index}] is a {type(geometry).__name__}; "
-                "supported geometry types: TriangleGeometry, CurveGeometry, BoundingBoxGeometry, SphereGeometry and "
-                "their Motion* variants"
+                f"supported geometry types: {_class_names()} and their Motion* variants"
             )
     primitive_data_layout(geometries)  # one layout for all primitive data (a named error otherwise)
     return geometries
@@ -256,11 +268,11 @@ def _leaf_primitives(geometries: tuple[TriangleGeometry, ...], capacity: int):
     triangle_lower, triangle_upper = TRIANGLE.bounds(triangles)
     lower = jnp.where(enterable[:, None], triangle_lower, jnp.inf)
     upper = jnp.where(enterable[:, None], triangle_upper, -jnp.inf)
-    spheres = _sphere_slots(geometries, capacity)
-    if spheres is not None:  # spheres: the centre plus and minus the radius (empty for a bad sphere)
-        sphere_lower, sphere_upper = SPHERE.bounds(triangles)
-        lower = jnp.where(spheres[:, None], sphere_lower, lower)
-        upper = jnp.where(spheres[:, None], sphere_upper, upper)
+    rows = _row_slots(geometries, capacity)
+    for kind, slots in rows:  # kinds in the shared row (spheres): their own bounds (empty for a bad leaf)
+        kind_lower, kind_upper = kind.bounds(triangles)
+        lower = jnp.where(slots[:, None], kind_lower, lower)
+        upper = jnp.where(slots[:, None], kind_upper, upper)
     if curves is not None:  # curve segments: their Bezier hull grown by the radius
         lower = jnp.where(curves.is_curve[:, None], curves.lower, lower)
         upper = jnp.where(curves.is_curve[:, None], curves.upper, upper)
@@ -270,40 +282,45 @@ def _leaf_primitives(geometries: tuple[TriangleGeometry, ...], capacity: int):
         box_lower, box_upper = BOUNDING_BOX.bounds(boxes)
         lower = jnp.where(is_box[:, None], box_lower, lower)
         upper = jnp.where(is_box[:, None], box_upper, upper)
-    return triangles, geometry_id, primitive_id, lower, upper, valid, curves, boxes, spheres
+    return triangles, geometry_id, primitive_id, lower, upper, valid, curves, boxes, rows
+
+
+def _in_shared_row(kind: Kind) -> bool:
+    """Whether ``kind`` keeps its leaves in the shared ``leaf_triangle`` row without owning it (spheres): its
+    geometries provide ``leaf_rows()``."""
+    return kind is not TRIANGLE and kind.leaf_arrays[0].name == "leaf_triangle"
 
 
 def _shared_rows(g: Any, dtype) -> jax.Array:
-    """The ``(N, 3, 3)`` rows of ``leaf_triangle`` of one geometry: triangles' vertices, spheres' centre and
-    radius (:mod:`jaxrt._src.kinds.sphere`), zeros for the other kinds."""
+    """The ``(N, 3, 3)`` rows of ``leaf_triangle`` of one geometry: triangles' vertices, the ``leaf_rows()`` of a
+    kind that keeps its leaves there (:func:`_in_shared_row`), zeros for the other kinds."""
     if TRIANGLE.holds(g):
         return g.triangle_vertices()
-    if SPHERE.holds(g):
+    if _in_shared_row(registry.kind(g.kind)):
         return g.leaf_rows().astype(dtype)
     return jnp.zeros((g.primitive_count, 3, 3), dtype)
 
 
-def _sphere_slots(geometries, capacity: int) -> jax.Array | None:
-    """``(C,)`` whether each unsorted slot holds a sphere (``None`` without sphere geometry)."""
-    if not any(SPHERE.holds(g) for g in geometries):
-        return None
-    flags = np.zeros(capacity, bool)
-    start = 0
-    for g in geometries:
-        flags[start : start + g.primitive_count] = SPHERE.holds(g)
-        start += g.primitive_count
-    return jnp.asarray(flags)
+def _row_slots(geometries, capacity: int) -> tuple[tuple[Kind, jax.Array], ...]:
+    """For each kind present that keeps its leaves in the shared row (:func:`_in_shared_row`), ``(kind, (C,)
+    whether each unsorted slot holds one of its leaves)``."""
+    out = []
+    for kind in registry.present(geometries):
+        if not _in_shared_row(kind):
+            continue
+        flags = np.zeros(capacity, bool)
+        start = 0
+        for g in geometries:
+            flags[start : start + g.primitive_count] = kind.holds(g)
+            start += g.primitive_count
+        out.append((kind, jnp.asarray(flags)))
+    return tuple(out)
 
 
 def geometries_dtype(geometries) -> jnp.dtype:
     """The float type of a sequence of geometries (the first one's)."""
     first = geometries[0]
-    return {
-        TRIANGLE: lambda: first.vertices,
-        CURVE: lambda: first.control_points,
-        BOUNDING_BOX: lambda: first.lower,
-        SPHERE: lambda: first.centers,
-    }[registry.kind(first.kind)]().dtype
+    return getattr(first, registry.kind(first.kind).float_array).dtype
 
 
 def _leaf_boxes(geometries, capacity: int, dtype) -> jax.Array | None:
@@ -341,7 +358,7 @@ def _lbvh(codes: jax.Array, real: int) -> tuple[jax.Array, jax.Array, jax.Array]
     return children, node_range, jnp.concatenate([order, jnp.arange(real, capacity, dtype=jnp.int32)])
 
 
-def _code_bounds(triangles, curves, boxes, spheres=None) -> tuple[jax.Array, jax.Array]:
+def _code_bounds(triangles, curves, boxes, rows=()) -> tuple[jax.Array, jax.Array]:
     """The boxes whose centroids give the Morton codes."""
     # Codes from the triangles' own boxes: a zero-area triangle's empty box has no centroid.
     bounds = lax.stop_gradient(triangles)
@@ -354,10 +371,10 @@ def _code_bounds(triangles, curves, boxes, spheres=None) -> tuple[jax.Array, jax
         box_lower, box_upper = BOUNDING_BOX.bounds(lax.stop_gradient(boxes))
         code_lower = jnp.where(is_box[:, None], box_lower, code_lower)
         code_upper = jnp.where(is_box[:, None], box_upper, code_upper)
-    if spheres is not None:  # spheres: their centres (also for a bad sphere, whose box is empty)
-        centre = lax.stop_gradient(triangles[:, 0])
-        code_lower = jnp.where(spheres[:, None], centre, code_lower)
-        code_upper = jnp.where(spheres[:, None], centre, code_upper)
+    for kind, slots in rows:  # kinds in the shared row: their code boxes (a sphere's centre, also for a bad one)
+        kind_lower, kind_upper = (kind.code_bounds or kind.bounds)(bounds)
+        code_lower = jnp.where(slots[:, None], kind_lower, code_lower)
+        code_upper = jnp.where(slots[:, None], kind_upper, code_upper)
     return code_lower, code_upper
 
 
@@ -371,8 +388,8 @@ def _build(
 ) -> PrimitiveAccelerationStructure:
     count_keys = _keyframe_count(geometries, motion, "build_primitive_structure")
     frames = [_leaf_primitives(f, capacity) for f in _keyframes(geometries, count_keys)]
-    triangles, geometry_id, primitive_id, lower, upper, valid, curves, boxes, spheres = frames[0]
-    code_lower, code_upper = _code_bounds(triangles, curves, boxes, spheres)
+    triangles, geometry_id, primitive_id, lower, upper, valid, curves, boxes, rows = frames[0]
+    code_lower, code_upper = _code_bounds(triangles, curves, boxes, rows)
     if count_keys > 1:  # every box bounds its primitive at every keyframe (and so at every time)
         lower, upper = motion_bounds(jnp.stack([f[3] for f in frames]), jnp.stack([f[4] for f in frames]))
         codes = [_code_bounds(f[0], f[6], f[7], f[8]) for f in frames]
@@ -432,10 +449,10 @@ def _build(
 def _keyframe_boxes(frame) -> tuple[jax.Array, jax.Array]:
     """Leaf boxes of one keyframe in slot order, where a triangle without area keeps its (flat) box: a
     triangle flat at one keyframe may have area between keyframes, and the blend needs finite corners."""
-    triangles, _, _, lower, upper, valid, _, _, spheres = frame
+    triangles, _, _, lower, upper, valid, _, _, rows = frame
     flat = valid & jnp.any(lower > upper, axis=-1)
-    if spheres is not None:  # a bad sphere stays empty (its test rejects it at every time)
-        flat = flat & ~spheres
+    for _, slots in rows:  # a bad leaf of a kind in the shared row stays empty (its test rejects it at every time)
+        flat = flat & ~slots
     triangle_lower, triangle_upper = TRIANGLE.bounds(triangles)
     lower = jnp.where(flat[:, None], triangle_lower, lower)
     upper = jnp.where(flat[:, None], triangle_upper, upper)

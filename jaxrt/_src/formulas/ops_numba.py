@@ -168,9 +168,10 @@ def dot3(ax, ay, az, bx, by, bz):
     return (ax * bx + ay * by) + az * bz
 
 
-def key_caches_on_formulas(namespace: dict) -> None:
+def key_caches_on_formulas(namespace: dict, *extra: str) -> None:
     """Key the on-disk cache of every cached Numba function in ``namespace`` (a module's globals) also on the
-    formulas' source (:func:`jaxrt._src.formulas.source_digest`).
+    formulas' source (:func:`jaxrt._src.formulas.source_digest`) and on ``extra`` (digests of other source the
+    functions embed, such as generated code).
 
     Numba keys a cached function by its own file's time stamp and bytecode; the formulas compiled into it live
     in other files, so without this an edited formula would load the stale machine code.
@@ -179,7 +180,7 @@ def key_caches_on_formulas(namespace: dict) -> None:
 
     from jaxrt._src.formulas import source_digest
 
-    digest = source_digest()
+    digest = source_digest() + "".join(extra)
 
     class _Cache(FunctionCache):
         def _index_key(self, sig, codegen):

@@ -81,4 +81,7 @@ BOUNDING_BOX = Kind(
     coverage={"gpu": Coverage(motion=False), "cpu": Coverage(motion=False)},
     function_code=_function_code,
     declines=_declines,
+    doc="A bounding-box primitive, accepted by its intersection function.",
+    geometry="BoundingBoxGeometry",
+    float_array="lower",
 )

@@ -52,4 +52,10 @@ CURVE = Kind(
         "gpu": Coverage(instanced=False, motion=False, alone=True, waves=False),
         "cpu": Coverage(instanced=False, motion=False, alone=True, waves=False),
     },
+    doc="A curve segment.",
+    tag_docs={
+        "curve_data": "Adds ``curve_parameter`` (curve geometry).",
+    },
+    geometry="CurveGeometry",
+    float_array="control_points",
 )

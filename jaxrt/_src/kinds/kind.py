@@ -13,7 +13,7 @@ import dataclasses
 from collections.abc import Callable, Mapping
 from typing import Any
 
-__all__ = ["Coverage", "Kind", "LeafArray"]
+__all__ = ["AnalyticRow", "Coverage", "Kind", "LeafArray"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,6 +64,39 @@ class Coverage:
     waves: bool = True
 
 
+#: The columns of an analytic row (:func:`jaxrt._src.traversal.packed.pack_analytic`) an :class:`AnalyticRow`'s
+#: test may read, by name: ``p`` (columns 0-2), ``q`` (4-6) and ``radius`` (7); column 3 holds the shape code.
+ROW_COLUMNS = ("px", "py", "pz", "qx", "qy", "qz", "radius")
+
+
+@dataclasses.dataclass(frozen=True)
+class AnalyticRow:
+    """How the compiled loops test the leaves of a kind whose formula alone decides them (``formula_leaves``):
+    as analytic rows, the parameter rows the GPU kernel and the CPU traversal also read for the built-in
+    intersection functions of bounding boxes. The loops' leaf dispatch is generated from these records
+    (:mod:`jaxrt._src.traversal.analytic_rows`), so a new kind needs no branch of its own there.
+
+    Attributes:
+      code: the shape code in column 3 of the kind's rows (``>= 5``: codes 1-3 are the built-in intersection
+        functions, 4 the candidate boxes of user functions); bit ``code`` of the traversals' ``shapes`` says a
+        scene holds such leaves.
+      formula: the formula module (:mod:`jaxrt._src.formulas`) that holds the test.
+      test: the test's name in that module: ``(*columns, ox, oy, oz, dx, dy, dz, t_min, t_max) -> (hit,
+        distance, ...)`` (further results are ignored).
+      columns: the row columns the test takes first, by name (:data:`ROW_COLUMNS`).
+      results: how many values the test returns (at least ``hit`` and ``distance``).
+      pack: ``leaf rows (C, *shape) -> (p (C, 3), q (C, 3), radius (C,))``: the analytic row's parameters from
+        the rows of the kind's first leaf array (detached; unused values are zeros).
+    """
+
+    code: int
+    formula: str
+    test: str
+    columns: tuple[str, ...]
+    results: int
+    pack: Callable[[Any], tuple[Any, Any, Any]]
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Kind:
     """One primitive kind (identity is equality: each kind is defined once, in its module).
@@ -109,6 +142,21 @@ class Kind:
       checks: ``geometry -> ((message, bad, value), ...)``: the rules of ``checks=True`` for a geometry of the
         kind: ``bad (N,)`` flags the bad rows of ``value (N, ...)``; ``message`` names the array with
         ``{index}`` and ``{value}`` (``None``: the kind has no rules, or :mod:`jaxrt._src.checks` writes them).
+      doc: what a hit of the kind is: the docstring of its ``rt.IntersectionType`` member.
+      tag_docs: the tags the kind defines, each with its docstring (``rt.tags.<name>``, added to
+        :mod:`jaxrt.tags` by the registry); ``tags`` lists them with the shared ones it also fills.
+      geometry: the name of the kind's static geometry class, for messages (its keyframed variant is
+        ``"Motion" + geometry``).
+      float_array: the attribute of the kind's geometries whose dtype is the geometry's float type.
+      code_bounds: ``row -> (lower, upper)``: the box whose centre gives a leaf's Morton code (``None``:
+        ``bounds``), for a kind whose bounds may be empty where the leaf still has a place (a bad sphere).
+      analytic: how the compiled loops test the kind's leaves (``None``: a branch of their own, or not traced).
+
+    The build reads a kind's leaves through this record and the geometry protocol: a geometry names its kind
+    (``kind``), has ``primitive_count`` and ``opaque``, ``motion = True`` and ``keyframe(k)`` when keyframed, and,
+    for a kind other than triangles whose first leaf array is the shared ``leaf_triangle`` row, ``leaf_rows()``
+    (``(N, 3, 3)``, differentiable): the build bounds those rows with ``bounds`` and codes them with
+    ``code_bounds``.
     """
 
     name: str
@@ -132,6 +180,12 @@ class Kind:
     dummy: Callable[[Any], tuple[Any, Any, Any]] | None = None
     inside: Callable[..., Any] | None = None
     checks: Callable[[Any], tuple[tuple[str, Any, Any], ...]] | None = None
+    doc: str = ""
+    tag_docs: Mapping[str, str] = dataclasses.field(default_factory=dict)
+    geometry: str = ""
+    float_array: str = ""
+    code_bounds: Callable[..., Any] | None = None
+    analytic: AnalyticRow | None = None
 
     def holds(self, info: Any) -> bool:
         """Whether the geometry described by ``info`` (a ``GeometryInfo`` or a geometry) is of this kind."""

@@ -2,9 +2,10 @@
 and fields, and the kind of a geometry.
 
 Adding a kind: write its module (a :class:`~jaxrt._src.kinds.kind.Kind` with its leaf layout table, bounds,
-tests, tags, coverage and the hooks the leaf tests, fields, point queries and checks call), add it to
-:data:`KINDS`, and give it a leaf branch in each compiled loop that traces it (docs/design.md, "Kinds and
-layers").
+tests, tags, coverage, its ``rt.IntersectionType`` member and tags, the build's geometry protocol, its analytic
+row for the compiled loops, and the hooks the leaf tests, fields, point queries and checks call) and add it to
+:data:`KINDS` (docs/design.md, "Kinds and layers"). The public enum ``rt.IntersectionType`` and the kinds' tags
+in ``rt.tags`` are built from this list.
 
 The coverage rule (:func:`declines`) is the one place that decides which traversal runs a scene: the portable
 traversal traces every kind; a compiled traversal (:data:`BACKENDS`) traces a scene when every kind present
@@ -17,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+from jaxrt import tags as tag_module
 from jaxrt._src.kinds.bounding_box import BOUNDING_BOX
 from jaxrt._src.kinds.curve import CURVE
 from jaxrt._src.kinds.kind import Coverage, Kind
@@ -45,6 +47,11 @@ __all__ = [
 KINDS: tuple[Kind, ...] = (TRIANGLE, BOUNDING_BOX, CURVE, SPHERE)
 
 _BY_NAME = {k.name: k for k in KINDS}
+
+# The kinds' own tags join the scene's in ``rt.tags`` (the tag vocabulary, the bottom layer, imports no kind).
+for _kind in KINDS:
+    for _name, _doc in _kind.tag_docs.items():
+        tag_module.define(_name, _doc)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -30,9 +30,22 @@ import jax
 import jax.numpy as jnp
 
 from jaxrt._src import formulas
-from jaxrt._src.kinds.kind import Coverage, Kind, LeafArray
+from jaxrt._src.kinds.kind import AnalyticRow, Coverage, Kind, LeafArray
 
-__all__ = ["SPHERE", "bounds", "checks", "closest_point", "dummy", "inside", "intersect", "normal", "rows", "unpack"]
+__all__ = [
+    "SPHERE",
+    "analytic_parameters",
+    "bounds",
+    "checks",
+    "closest_point",
+    "code_bounds",
+    "dummy",
+    "inside",
+    "intersect",
+    "normal",
+    "rows",
+    "unpack",
+]
 
 _formula = formulas.instance("sphere", "jax")
 
@@ -60,6 +73,20 @@ def bounds(row: jax.Array) -> tuple[jax.Array, jax.Array]:
     ok = valid(row)[..., None]
     r = radius[..., None]
     return jnp.where(ok, centre - r, jnp.inf), jnp.where(ok, centre + r, -jnp.inf)
+
+
+def code_bounds(row: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The point box of the centres of leaf rows ``(..., 3, 3)``, whose centre gives a sphere's Morton code (also
+    for a bad sphere, whose box is empty)."""
+    centre, _ = unpack(row)
+    return centre, centre
+
+
+def analytic_parameters(row: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """``(p, q, radius)`` of the compiled loops' analytic rows (code 5) from leaf rows ``(C, 3, 3)``: the centre,
+    zeros and the radius."""
+    centre, radius = unpack(row)
+    return centre, jnp.zeros_like(centre), radius
 
 
 def intersect(
@@ -130,7 +157,7 @@ SPHERE = Kind(
     closest_point=closest_point,
     tags=("sphere_data", "normal"),
     fields={"sphere_front_facing": "sphere_data"},
-    # the compiled traversals test sphere leaves as analytic rows (code 5), from the static leaf rows
+    # the compiled traversals test sphere leaves as analytic rows (code 5, ``analytic``), from the static leaf rows
     coverage={"gpu": Coverage(motion=False, waves=False), "cpu": Coverage(motion=False)},
     filter_code=_filter_code,
     formula_leaves=True,
@@ -139,4 +166,16 @@ SPHERE = Kind(
     dummy=dummy,
     inside=inside,
     checks=checks,
+    doc="A built-in sphere (``rt.SphereGeometry``).",
+    tag_docs={
+        "sphere_data": (
+            "Adds ``sphere_front_facing`` (sphere geometry): true where the ray enters the sphere at the hit, "
+            "false where it leaves it (a ray that starts inside the sphere, or enters it before its "
+            "``min_distance``); false off spheres."
+        ),
+    },
+    geometry="SphereGeometry",
+    code_bounds=code_bounds,
+    analytic=AnalyticRow(5, "sphere", "ray_sphere", ("px", "py", "pz", "radius"), 3, analytic_parameters),
+    float_array="centers",
 )

@@ -59,4 +59,10 @@ TRIANGLE = Kind(
     fields={"triangle_barycentric_coord": "triangle_data", "triangle_front_facing": "triangle_data"},
     coverage={"gpu": Coverage(), "cpu": Coverage()},
     filter_code=_filter_code,
+    doc="A triangle.",
+    tag_docs={
+        "triangle_data": "Adds ``triangle_barycentric_coord`` ``(..., 2)`` and ``triangle_front_facing`` to the result.",
+    },
+    geometry="TriangleGeometry",
+    float_array="vertices",
 )

@@ -51,7 +51,7 @@ try:  # the callback that hands XLA's buffers over in place (no argument or resu
 except ImportError:  # pragma: no cover - depends on the jax version
     _buffer_callback = None
 from jaxrt._src.primitives import box, curve
-from jaxrt._src.traversal import packed
+from jaxrt._src.traversal import analytic_rows, packed
 from jaxrt._src.traversal.scene import TraversalLayout, TraversalRays, TraversalResult, TraversalScene
 from jaxrt._src.traversal.step import HitList
 
@@ -72,11 +72,12 @@ _RAY_RANKS = (2, 2, 1, 1, 1, 1, 1, 2)
 _RAYS = len(_SCENE_RANKS)
 #: Positions of the float arguments (scene geometry, analytic rows, keyframes, curve segments and rays).
 _FLOAT_ARGS = (0, 1, 3, 4, 8, 9, 10, 11, 13, 15, _RAYS, _RAYS + 1, _RAYS + 2, _RAYS + 3, _RAYS + 6, _RAYS + 7)
-#: ``params[9]`` where the analytic leaves are built-in spheres alone (:func:`_analytic_mode`).
-_SPHERES = 2
+#: ``params[9]`` where the analytic leaves are those of kinds with an analytic row alone (built-in spheres;
+#: :func:`_analytic_mode`).
+_FORMULA_ROWS = 2
 #: Bits of ``AnalyticLeaves.shapes`` (:func:`jaxrt._src.traversal.gpu.analytic_leaves`) the lean loop covers:
-#: triangles (bit 3) and built-in spheres (bit 5).
-_LEAN_SHAPES = (1 << 3) | (1 << 5)
+#: triangles (bit 3) and the kinds' analytic rows (:data:`jaxrt._src.traversal.analytic_rows.FORMULA_SHAPES`).
+_LEAN_SHAPES = (1 << 3) | analytic_rows.FORMULA_SHAPES
 #: Rays a thread claims at a time (rays cost unevenly: small claims keep every thread busy to the end).
 CHUNK = 32
 #: Fewest rays per thread worth starting one.
@@ -195,15 +196,15 @@ def _trace(params: tuple, arrays: list[np.ndarray], boxes: np.ndarray | None) ->
     )
     consts, flags = constants(dtype), np.asarray(params, np.int64)
     counter = np.zeros(1, np.int64)
-    spheres = params[9] == _SPHERES
-    if levels == 0 and not hit_list and not params[11] and (not params[9] or (spheres and not params[10])):
-        # triangles and built-in spheres, no instances or curves: the lean loop
+    formula_rows = params[9] == _FORMULA_ROWS
+    if levels == 0 and not hit_list and not params[11] and (not params[9] or (formula_rows and not params[10])):
+        # triangles and the kinds' analytic rows (built-in spheres), no instances or curves: the lean loop
         rays = arrays[_RAYS : _RAYS + 5]
         if boxes is None:
             boxes = _box_rows_in_place(arrays[0], arrays[1])
         run = functools.partial(
             cpu_kernel.trace_flat, *arrays[:4], boxes, *rays, consts, params[0], params[3], bool(params[4]), params[5],
-            counter, CHUNK, n, out[0], out[1], *out[3:], bool(params[10]), *arrays[9:15], arrays[_RAYS + 6], spheres,
+            counter, CHUNK, n, out[0], out[1], *out[3:], bool(params[10]), *arrays[9:15], arrays[_RAYS + 6], formula_rows,
             arrays[8],
         )  # fmt: skip
     else:
@@ -429,11 +430,11 @@ def _host_arrays(params: tuple, *args: np.ndarray, boxes: np.ndarray | None = No
 
 
 def _analytic_mode(analytic: Any) -> int:
-    """``params[9]``: 0 without analytic leaves, :data:`_SPHERES` where they are built-in spheres alone (beside
-    triangles), else 1."""
+    """``params[9]``: 0 without analytic leaves, :data:`_FORMULA_ROWS` where they are the rows of kinds alone
+    (built-in spheres, beside triangles), else 1."""
     if analytic is None:
         return 0
-    return _SPHERES if analytic.shapes & ~_LEAN_SHAPES == 0 else 1
+    return _FORMULA_ROWS if analytic.shapes & ~_LEAN_SHAPES == 0 else 1
 
 
 def _params(

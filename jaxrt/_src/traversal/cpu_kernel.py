@@ -9,9 +9,9 @@ watertight test (Woop, Benthin, Wald 2013), the nearer inner child entered and t
 any-hit order of :func:`_first`), and the instance transition (ray moved by the instance's world-to-object
 rows, facing multiplied along the chain).
 :func:`trace_rays` is the general loop; :func:`trace_flat` the same loop for a primitive structure of triangles
-and built-in spheres with a nearest or any-hit query (no instance, hit-list or analytic bookkeeping per visit),
-which tests both child boxes of a node in one vector slab test (:func:`_box_pair`, on the node rows of
-:func:`box_rows`) for rays parallel to no axis.
+and the leaves of kinds with an analytic row (built-in spheres) with a nearest or any-hit query (no instance,
+hit-list or analytic bookkeeping per visit), which tests both child boxes of a node in one vector slab test
+(:func:`_box_pair`, on the node rows of :func:`box_rows`) for rays parallel to no axis.
 
 The leaf and box tests are the shared formulas of :mod:`jaxrt._src.formulas` (slab test, shear, watertight
 triangle, analytic shapes, curves through :mod:`jaxrt._src.traversal.cpu_curves`) instantiated for Numba; this
@@ -45,6 +45,7 @@ from numba.extending import intrinsic
 from jaxrt._src import formulas
 from jaxrt._src.formulas.ops_numba import fma as _fma
 from jaxrt._src.formulas.ops_numba import key_caches_on_formulas
+from jaxrt._src.traversal import analytic_rows as row_dispatch
 from jaxrt._src.traversal import cpu_curves
 
 _box_f = formulas.instance("box", "numba")
@@ -59,11 +60,6 @@ _edges_inside = _tri.edges_inside
 _facing_accepts = _tri.facing_accepts
 _plane_distance = _tri.plane_distance
 _in_interval = _tri.in_interval
-_shapes = formulas.instance("analytic", "numba")
-_sphere = _shapes.sphere
-_disk = _shapes.disk
-_capped_cylinder = _shapes.capped_cylinder
-_ray_sphere = formulas.instance("sphere", "numba").ray_sphere
 _curve_leaf = cpu_curves.curve_leaf
 
 __all__ = ["trace_flat", "trace_rays"]
@@ -82,6 +78,27 @@ _U7 = np.uint64(7)
 _U8 = np.uint64(8)
 _U9 = np.uint64(9)
 _U12 = np.uint64(12)
+
+# The dispatch over analytic rows, generated from the kind registry (:mod:`jaxrt._src.traversal.analytic_rows`):
+# ``_analytic`` tests any analytic row, ``_is_formula_row`` and ``_formula_row`` a kind's row in the lean loop.
+_generated = row_dispatch.compile_source(
+    "numba",
+    row_dispatch.numba_source(),
+    dict(
+        np=np,
+        _U1=_U1,
+        _U2=_U2,
+        _U3=_U3,
+        _U4=_U4,
+        _U5=_U5,
+        _U6=_U6,
+        _U7=_U7,
+        tests=lambda module, name: getattr(formulas.instance(module, "numba"), name),
+    ),
+)
+_analytic = numba.njit(_generated.analytic)
+_is_formula_row = numba.njit(inline="always")(_generated.is_formula_row)
+_formula_row = numba.njit(inline="always")(_generated.formula_row)
 
 
 @intrinsic
@@ -267,22 +284,6 @@ def _row(m0, m1, m2, x0, x1, x2):
     """``m0 x0 + m1 x1 + m2 x2`` as XLA's CPU backend sums a row of the transform in the portable transition:
     a reduction whose multiply-adds are contracted, ``fma(m2, x2, fma(m1, x1, m0 x0))``."""
     return _fma(m2, x2, _fma(m1, x1, m0 * x0))
-
-
-@numba.njit(cache=True)
-def _analytic(row, ox, oy, oz, dx, dy, dz, t_min, t_max, one, inf):
-    """``(accepted, distance)`` of an analytic leaf's row (:func:`jaxrt._src.traversal.packed.pack_analytic`:
-    ``p``, code, ``q``, radius) for the ray of its level; code 5: a built-in sphere."""
-    code = row[3]
-    if code == 5:
-        ok, t, _ = _ray_sphere(row[0], row[1], row[2], row[7], ox, oy, oz, dx, dy, dz, t_min, t_max)
-    elif code == 1:
-        ok, t = _sphere(row[0], row[1], row[2], row[7], ox, oy, oz, dx, dy, dz, t_min, t_max)
-    elif code == 2:
-        ok, t = _disk(row[0], row[1], row[2], row[4], row[5], row[6], row[7], ox, oy, oz, dx, dy, dz, t_min, t_max)  # fmt: skip
-    else:
-        ok, t = _capped_cylinder(row[0], row[1], row[2], row[4], row[5], row[6], row[7], ox, oy, oz, dx, dy, dz, t_min, t_max)  # fmt: skip
-    return ok, (t if ok else inf)
 
 
 @numba.njit(cache=True)
@@ -643,16 +644,17 @@ def trace_flat(
     node_lower, node_upper, node_children, leaf_triangle, rows, origin, direction, t_min_all, t_max_all, enabled,
     consts, root, stack_size, any_hit, cull, counter, chunk, end, out_distance, out_leaf, out_visited, out_tested,
     out_overflow, moving, node_keys_lower, node_keys_upper, leaf_keys, leaf_moving, motion_f, motion_i, time_all,
-    spheres, analytic_rows,
+    formula_rows, analytic_rows,
 ):  # fmt: skip
-    """:func:`trace_rays` for a primitive structure of triangles and built-in spheres (no instance levels, no hit
-    list, no other analytic leaves): the same loop without the instance, hit-list and analytic bookkeeping, and
-    the same results. The instance chain (zero columns) is not written. ``rows`` holds the node boxes as
+    """:func:`trace_rays` for a primitive structure of triangles and the leaves of kinds with an analytic row
+    (built-in spheres; no instance levels, no hit list, no built-in intersection functions): the same loop
+    without the instance, hit-list and analytic bookkeeping, and the same results. The instance chain (zero columns) is not written. ``rows`` holds the node boxes as
     :func:`box_rows` lays them out, for the vector test; the scalar test reads ``node_lower`` and
     ``node_upper``. With ``moving`` (triangles only), the primitive keyframe motion of :func:`trace_rays` (its
     ``node_keys_*`` to ``time_all`` arguments): each visited node's boxes and each tested triangle are blended
-    at the ray's time first. With ``spheres``, a leaf whose row of ``analytic_rows`` (as :func:`trace_rays`
-    reads them) has code 5 is a built-in sphere, tested as :func:`_analytic` tests it."""
+    at the ray's time first. With ``formula_rows``, a leaf whose row of ``analytic_rows`` (as :func:`trace_rays`
+    reads them) has a kind's code (:mod:`jaxrt._src.traversal.analytic_rows`) is tested by that kind's formula,
+    as :func:`_analytic` tests it."""
     stack = np.empty(max(stack_size, 1), np.int32)
     nodes_move, vanish_start, vanish_end = motion_i[0] != 0, motion_i[1] != 0, motion_i[2] != 0
     key_b = np.empty(12, consts.dtype)  # a node's boxes blended: lowers, then uppers (as _node_keys writes them)
@@ -723,8 +725,8 @@ def trace_flat(
                 if c0 < 0 and hit0:
                     tested += 1
                     a = np.uint64(-1 - c0) * width
-                    if spheres and af[a + _U3] == 5:  # a built-in sphere: centre, code, ..., radius
-                        ok0, t0, _ = _ray_sphere(af[a], af[a + _U1], af[a + _U2], af[a + _U7], o0, o1, o2, w0, w1, w2, t_min, distance)  # fmt: skip
+                    if formula_rows and _is_formula_row(af[a + _U3]):  # a kind's analytic row (built-in sphere)
+                        ok0, t0 = _formula_row(af, a, o0, o1, o2, w0, w1, w2, t_min, distance, inf)
                         if not ok0:
                             t0 = inf
                     elif moving:  # the triangle blended at the ray's time; a moving one may vanish
@@ -737,8 +739,8 @@ def trace_flat(
                 if c1 < 0 and hit1:
                     tested += 1
                     a = np.uint64(-1 - c1) * width
-                    if spheres and af[a + _U3] == 5:  # a built-in sphere: centre, code, ..., radius
-                        ok1, t1, _ = _ray_sphere(af[a], af[a + _U1], af[a + _U2], af[a + _U7], o0, o1, o2, w0, w1, w2, t_min, distance)  # fmt: skip
+                    if formula_rows and _is_formula_row(af[a + _U3]):  # a kind's analytic row (built-in sphere)
+                        ok1, t1 = _formula_row(af, a, o0, o1, o2, w0, w1, w2, t_min, distance, inf)
                         if not ok1:
                             t1 = inf
                     elif moving:
@@ -799,4 +801,4 @@ def _triangle_at(tf, q, ux, uy, uz, ox, oy, oz, sx, sy, sz, t_min, t_max, cull, 
 
 
 #: Cached functions here embed the formulas: their disk cache is keyed on the formulas' source too.
-key_caches_on_formulas(globals())
+key_caches_on_formulas(globals(), row_dispatch.SOURCE_DIGEST)

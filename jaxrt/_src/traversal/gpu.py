@@ -50,11 +50,10 @@ from jax import lax
 
 from jaxrt._src import numerics
 from jaxrt._src.kinds import registry
-from jaxrt._src.kinds import sphere as sphere_kind
-from jaxrt._src.kinds.registry import BOUNDING_BOX, SPHERE, TRIANGLE
+from jaxrt._src.kinds.registry import BOUNDING_BOX, TRIANGLE
 from jaxrt._src.motion import KeyframePosition, spec_position
 from jaxrt._src.primitives import analytic, box, curve
-from jaxrt._src.traversal import kernel_cache, packed
+from jaxrt._src.traversal import analytic_rows, kernel_cache, packed
 from jaxrt._src.traversal.scene import TraversalLayout, TraversalResult, TraversalScene
 from jaxrt._src.traversal.step import HitList
 
@@ -595,8 +594,6 @@ def leaf_motion(view: Any) -> LeafMotion | None:
 #: The shape code of a box leaf whose intersection function is user code (candidate waves): the kernel lists the
 #: box at its entry distance and JAX calls the function.
 CANDIDATE_BOX = 4
-#: The shape code of a built-in sphere leaf (``rt.SphereGeometry``); bit 5 of ``shapes`` says the scene has some.
-BUILTIN_SPHERE = 5
 
 
 class AnalyticLeaves(NamedTuple):
@@ -604,8 +601,8 @@ class AnalyticLeaves(NamedTuple):
 
     rows: jax.Array  # (P, 12) float32: :func:`~jaxrt._src.traversal.packed.pack_analytic`, code 0 elsewhere
     shapes: int  # static: bit ``code - 1`` for each shape of the intersector's functions, bit 3 with triangles,
-    # bit 4 with boxes of user functions (code CANDIDATE_BOX, listed as candidates in waves), bit 5 with built-in
-    # spheres (code BUILTIN_SPHERE: the centre, and the radius in column 7)
+    # bit 4 with boxes of user functions (code CANDIDATE_BOX, listed as candidates in waves), bit ``code`` with the
+    # leaves of a kind with an analytic row (its ``Kind.analytic.code``, >= 5: built-in spheres)
 
 
 def analytic_leaves(
@@ -627,7 +624,7 @@ def analytic_leaves(
       ValueError: a function that is not built-in (without ``candidates``), or primitive data without the
         fields a function reads.
     """
-    if BOUNDING_BOX.name not in view.kinds and SPHERE.name not in view.kinds:
+    if not any(k.name in view.kinds for k in (BOUNDING_BOX, *analytic_rows.ROW_KINDS)):
         return None
     codes = np.zeros(len(view.geometry_info) + 1, np.int32)  # by geometry index; the last entry: padding
     shapes = 8 if TRIANGLE.name in view.kinds else 0
@@ -675,13 +672,17 @@ def analytic_leaves(
         first = jnp.where(mine[:, None], p, first)
         second = jnp.where(mine[:, None], q, second)
         radius = jnp.where(mine, r, radius)
-    if SPHERE.name in view.kinds:  # built-in spheres: centre and radius from the leaf row
-        is_sphere = view.leaf_flag(view.slot_table(view.slots_where(SPHERE.holds)), jnp.arange(count))
-        centre, r = sphere_kind.unpack(lax.stop_gradient(leaves.triangle).astype(dtype))
-        code = jnp.where(is_sphere, BUILTIN_SPHERE, code)
-        first = jnp.where(is_sphere[:, None], centre, first)
-        radius = jnp.where(is_sphere, r, radius)
-        shapes |= 1 << BUILTIN_SPHERE  # bit 5 (bit 4 is taken by candidate boxes)
+    for kind in analytic_rows.ROW_KINDS:  # kinds tested by their formula (spheres): parameters from the leaf rows
+        if kind.name not in view.kinds:
+            continue
+        mine = view.leaf_flag(view.slot_table(view.slots_where(kind.holds)), jnp.arange(count))
+        rows = getattr(leaves, kind.leaf_arrays[0].name.removeprefix("leaf_"))
+        p, q, r = kind.analytic.pack(lax.stop_gradient(rows).astype(dtype))
+        code = jnp.where(mine, kind.analytic.code, code)
+        first = jnp.where(mine[:, None], p, first)
+        second = jnp.where(mine[:, None], q, second)
+        radius = jnp.where(mine, r, radius)
+        shapes |= 1 << analytic_rows.shape_bit(kind.analytic.code)
     return AnalyticLeaves(packed.pack_analytic(code, first, second, radius, dtype), shapes)
 
 

@@ -75,10 +75,11 @@ Both leaves of a step are tested against the bound before it and inserted leaf c
 ``COUNT`` counts every accepted hit and never lowers the bound.
 
 Analytic leaves (compile-time constant ``ANALYTIC``; 0 generates the triangle-only code): bounding-box leaves
-whose geometry uses a built-in intersection function, and built-in sphere leaves, carry their parameters in their
-triangle row, with the shape code in column 3 (0 for triangles; :func:`jaxrt._src.traversal.packed.pack_analytic`).
-:func:`_leaf` reads the code and runs :func:`jaxrt._src.traversal.triton_analytic.analytic_hit` (the shapes of
-bits 0-2 and 5 of ``ANALYTIC``) and, where bit 3 says the scene also holds triangles, the watertight test on the lanes with a
+whose geometry uses a built-in intersection function, and the leaves of kinds with an analytic row (built-in
+spheres), carry their parameters in their triangle row, with the shape code in column 3 (0 for triangles;
+:func:`jaxrt._src.traversal.packed.pack_analytic`). :func:`_leaf` reads the code and runs
+:func:`jaxrt._src.traversal.triton_analytic.analytic_hit` (the shapes of bits 0-2 of ``ANALYTIC``, and
+from bit 5 on the kinds') and, where bit 3 says the scene also holds triangles, the watertight test on the lanes with a
 triangle, each behind a warp-uniform branch. The shapes see the ray of the current level (origin and
 unnormalised direction; the extended ray block carries the direction also without instances).
 """
@@ -287,7 +288,7 @@ def _leaf(
         qx, qy, qz, radius = _quad(tris_ptr, leaf, 12, 4, mask, LANES, VECTOR)
         shaped = mask & (code != 0)
         hit, distance = analytic_hit(
-            code, shaped, px, py, pz, qx, qy, qz, radius, ox, oy, oz, dx, dy, dz, t_min, t_max, ANALYTIC & 39
+            code, shaped, px, py, pz, qx, qy, qz, radius, ox, oy, oz, dx, dy, dz, t_min, t_max, ANALYTIC
         )
         if (ANALYTIC & 8) != 0:
             plain = mask & (code == 0)
@@ -893,7 +894,8 @@ def trace_kernel(
     (``(K, LEVELS, n_rays)``) receives each hit's instance chain. ``COUNT`` counts every accepted hit in ``hit_total_ptr`` and never lowers the bound (the leaf stays -1).
 
     Analytic leaves (``ANALYTIC = 0`` compiles none of this): bits 0-2 name the shapes of the scene (sphere,
-    disk, capped cylinder), bit 3 that it also holds triangles, bit 5 built-in spheres; see :func:`_leaf`. Without instances the
+    disk, capped cylinder), bit 3 that it also holds triangles, bits 5 on the kinds' analytic rows (built-in
+    spheres); see :func:`_leaf`. Without instances the
     direction comes from the extended ray block (rows 17-19).
 
     Curves (``CURVES = False`` compiles none of this): ``curves_ptr`` holds a curve row per primitive leaf
