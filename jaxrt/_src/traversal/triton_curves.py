@@ -3,10 +3,11 @@ instantiated for Triton, read from the kernel's curve rows.
 
 Imported only where Triton is installed (by :mod:`jaxrt._src.traversal.triton_kernel`). :func:`curve_leaf` tests
 one leaf per lane against the segment in its kernel row (:func:`jaxrt._src.traversal.packed.pack_curves`) with
-the ray's frame from the ray block (:func:`curve_ray`): the formula's control points in ray space
-(``ray_space``) and hull cull (``hull_cull``), then its round (``round_test``) or flat (``flat_test``) test, each
-behind a warp-uniform branch that skips it where no lane of the warp needs it (no live curve lane, or none of
-that kind). The formula's order of operations, the first of the smallest keys per candidate kind, the float64
+the ray's frame from the ray block (:func:`curve_ray`): the formula's ``segment`` taken apart, so that the
+warp skips what no lane needs. Per segment type compiled (``FLAT``), the lanes of that type read the row, move
+its control points into the ray's frame (``ray_space``) and cull by the hull (``hull_cull``); the round
+(``round_test``) or flat (``flat_test``) test runs behind a warp-uniform branch, where some lane is live. The
+formula's order of operations, the first of the smallest keys per candidate kind, the float64
 sample weights and the correctly rounded divisions and square roots are those of the CPU traversal
 (:mod:`jaxrt._src.traversal.cpu_curves`), and the kernel is compiled without contraction, so both give the same
 floats; ``tests/test_formulas.py`` checks it per formula and ``tests/test_gpu_curves.py`` through the kernel.
