@@ -110,6 +110,154 @@ def test_curve_rows_hold_the_packed_segments():
     np.testing.assert_array_equal(rows[:, 20:], segment[:, 5])
 
 
+# --- the curve leaf test alone: the formula against the former port and the CPU traversal -------------------------
+
+
+def _moved(geometry, shift):
+    """``geometry`` (curves or triangles) moved by ``shift``."""
+    if isinstance(geometry, rt.CurveGeometry):
+        return rt.CurveGeometry(geometry.control_points + shift, geometry.radii, geometry.indices,
+                                basis=geometry.basis.value, control_point_count=geometry.control_point_count,
+                                curve_type=geometry.curve_type.value, end_caps=geometry.end_caps.value)  # fmt: skip
+    return rt.TriangleGeometry(np.asarray(geometry.vertices) + shift)
+
+
+#: The scenes of :func:`test_curve_leaf_formula_equals_the_former_port` (:func:`_leaf_scenes`).
+LEAF_SCENES = ("round", "flat", "mixed", "mixed-far", "round-far", "mixed-5-pieces", "mixed-no-newton")
+
+
+def _leaf_scenes():
+    """``{name: (geometries, intersector, far)}`` of :data:`LEAF_SCENES`: round segments of every basis and cap
+    with triangles (the round test only), ribbons of every basis and cap (the flat test only), kinked round and
+    flat chains with round tubes (both tests, per row), those far from the origin, and static options (pieces not
+    a power of two, no Newton steps)."""
+    triangles = rt.TriangleGeometry(np.random.default_rng(40).uniform(-1, 2, (24, 3)).astype(np.float32))
+    round_ = [triangles, hair(seed=41, strands=2, basis="bezier", end_caps="sphere"),
+              hair(seed=42, strands=2, basis="catmull_rom", end_caps="none"),
+              hair(seed=43, strands=2, basis="bspline", end_caps="disk")]  # fmt: skip
+    flat = [hair(seed=44, strands=2, basis="bezier", end_caps="disk", curve_type="flat"),
+            hair(seed=45, strands=2, basis="catmull_rom", end_caps="sphere", curve_type="flat"),
+            hair(seed=46, strands=2, basis="bspline", count=3, end_caps="none", curve_type="flat"),
+            hair(seed=47, strands=2, basis="linear", count=2, end_caps="disk", curve_type="flat")]  # fmt: skip
+    mixed = [_kinked("sphere")[0], _flat_kinked("disk")[1], hair(seed=48, strands=2, end_caps="disk")]
+    plain = rt.Intersector()
+    pieces = rt.Intersector(curve_options=rt.CurveOptions(pieces=5, iterations=2, approach_iterations=1))
+    scenes = [(round_, plain, 0.0), (flat, plain, 0.0), (mixed, plain, 0.0), (mixed, plain, 1.1e4),
+              (round_, plain, 1.3e3), (mixed, pieces, 0.0), (mixed, rt.Intersector(curve_options=rt.CurveOptions(iterations=0)), 0.0)]  # fmt: skip
+    return dict(zip(LEAF_SCENES, scenes, strict=True))
+
+
+def _leaf_pairs(geometries, intersector, far: float, seed: int):
+    """Lanes of (ray, leaf) pairs of a structure of ``geometries`` (moved ``far`` along a fixed direction): up to
+    96 hitting pairs, 40 misses (many grazing: the rays pass within 1.5 radii of the centre lines), 16 triangle
+    leaves; intervals that end or start within 1% of the hit on a quarter of the hitting lanes; lanes that test
+    no leaf; three segments made degenerate (a point, zero radius, a zero start tangent). Returns the kernel's
+    rows and ray block, the static options, and per lane the CPU traversal's ``(hit, distance)``, or where the
+    lane tests no curve the hit and distance it starts from (a triangle test's answer)."""
+    from jaxrt._src.traversal import cpu, cpu_curves, packed
+
+    shift = np.float32(far) * np.array([1.0, -0.37, 0.61], np.float32)
+    geometries = [_moved(g, shift) if far else g for g in geometries]
+    view = scene_view(rt.build_primitive_structure(geometries))
+    static = gpu.curve_leaves(view, leaf_tests.curve_configuration(intersector, view)).options
+    segments = np.array(view.leaves.curve, np.float32)
+    flags = np.asarray(view.leaves.curve_flags).astype(np.int32)
+    curve_leaves = np.nonzero(flags & 32)[0]
+    segments[curve_leaves[0], :4, :3] = 0.0  # every control point at the base point
+    segments[curve_leaves[1], :4, 3] = 0.0  # zero radius
+    segments[curve_leaves[2], 1, :] = segments[curve_leaves[2], 0, :]  # a zero start tangent
+    rows = np.asarray(packed.pack_curves(jnp.asarray(segments), jnp.asarray(flags)))
+    rng = np.random.default_rng(seed)
+    rays = [aimed_rays(rng, g, 16) for g in geometries if isinstance(g, rt.CurveGeometry)]
+    origin = np.concatenate([o for o, _ in rays])
+    direction = np.concatenate([d for _, d in rays])
+    frame = np.asarray(cpu.curve_frames(jnp.asarray(origin), jnp.asarray(direction)))
+    params = np.asarray(cpu.curve_params(static), np.int64)
+
+    def numba(ray, leaf, lo, hi):
+        n = len(ray)
+        out = [np.empty(n, bool), np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.int64)]
+        cpu_curves.pairs(np.ascontiguousarray(segments[leaf]), flags[leaf], origin[ray], frame[ray], lo, hi, params,
+                         np.float32(np.inf), *out)  # fmt: skip
+        return out[0], out[1]
+
+    ray, leaf = np.repeat(np.arange(len(origin)), len(curve_leaves)), np.tile(curve_leaves, len(origin))
+    hit, distance = numba(ray, leaf, np.zeros(len(ray), np.float32), np.full(len(ray), np.inf, np.float32))
+    misses = rng.permutation(np.nonzero(~hit)[0])[:40]
+    chosen = np.concatenate([rng.permutation(np.nonzero(hit)[0])[:96], misses])
+    ray, leaf, distance = ray[chosen], leaf[chosen], distance[chosen]
+    triangle_leaves = np.nonzero((flags & 32) == 0)[0]
+    if len(triangle_leaves):
+        extra = rng.integers(0, len(origin), 16)
+        ray, leaf = np.concatenate([ray, extra]), np.concatenate([leaf, rng.choice(triangle_leaves, 16)])
+        distance = np.concatenate([distance, np.full(16, np.inf, np.float32)])
+    pad = -len(ray) % 32
+    ray, leaf = np.concatenate([ray, ray[:pad]]), np.concatenate([leaf, leaf[:pad]])
+    distance = np.concatenate([distance, distance[:pad]])
+    n = len(ray)
+    lo, hi = np.zeros(n, np.float32), np.full(n, np.inf, np.float32)
+    near = np.isfinite(distance)
+    ends = near & (rng.random(n) < 0.15)
+    starts = near & ~ends & (rng.random(n) < 0.1)
+    hi[ends] = (distance[ends] * rng.uniform(0.99, 1.01, ends.sum())).astype(np.float32)
+    lo[starts] = (distance[starts] * rng.uniform(0.99, 1.01, starts.sum())).astype(np.float32)
+    test = rng.random(n) > 0.1
+    hit_in = rng.random(n) < 0.3
+    distance_in = np.where(hit_in, rng.uniform(1.0, 30.0, n), np.inf).astype(np.float32)
+    block = np.zeros((34, n), np.float32)
+    block[:3] = origin[ray].T
+    block[3], block[4], block[5], block[6], block[7] = lo, hi, test, hit_in, distance_in
+    block[24:] = frame[ray].T
+    hit, distance = numba(ray, leaf, lo, hi)
+    curve = test & ((flags[leaf] & 32) != 0)
+    return rows[leaf], block, static, np.where(curve, hit, hit_in), np.where(curve, distance, distance_in)
+
+
+def _run_leaf_pairs(rows, block, static, handwritten: bool):
+    """The kernel's curve leaf test on every lane of ``block`` (:func:`curve_leaf_kernels.leaf_pairs`):
+    ``(hit, distance)``."""
+    from curve_leaf_kernels import leaf_pairs
+
+    n = block.shape[1]
+    pieces, iterations, approach, tolerance, disk, sphere, flat = static
+    params = dict(LANES=32, PIECES=pieces, ITERATIONS=iterations, APPROACH=approach, TOLERANCE=tolerance,
+                  DISK=bool(disk), SPHERE=bool(sphere), FLAT=flat, HANDWRITTEN=handwritten)  # fmt: skip
+    if ON_GPU:
+        import jax_triton as jt
+
+        shapes = [jax.ShapeDtypeStruct((n,), jnp.int32), jax.ShapeDtypeStruct((n,), jnp.float32)]
+        hit, distance = jt.triton_call(jnp.asarray(rows), jnp.asarray(block), n, kernel=leaf_pairs, out_shape=shapes,
+                                       grid=(n // 32,), num_warps=1, num_stages=1, enable_fp_fusion=False, **params)  # fmt: skip
+        return np.asarray(hit) != 0, np.asarray(distance)
+    from test_gpu_instanced import _HostArray
+
+    outs = [np.full(n, -7, np.int32), np.full(n, np.nan, np.float32)]
+    leaf_pairs[(n // 32,)](_HostArray(rows), _HostArray(block), n, *(_HostArray(o) for o in outs), **params)
+    return outs[0] != 0, outs[1]
+
+
+@kernel_test
+@pytest.mark.parametrize("name", LEAF_SCENES)
+def test_curve_leaf_formula_equals_the_former_port(name):
+    """The kernel's curve leaf test (the shared formula's Triton instance) gives the hits and distances of the
+    former hand-written Triton port bit for bit, and the CPU traversal's (the formula's Numba instance) bit for
+    bit: round and flat segments of every basis and cap, grazing rays, intervals ending or starting at the hit,
+    degenerate segments, strands far from the origin, static options; lanes that test no curve keep the
+    triangle test's answer. (The curve parameter is not an output of the kernel's leaf test: the result fields
+    re-intersect the leaf in JAX; ``tests/test_formulas.py`` compares the formula's ``u`` across backends.)"""
+    geometries, intersector, far = _leaf_scenes()[name]
+    seed = 50 + LEAF_SCENES.index(name)
+    rows, block, static, want_hit, want_distance = _leaf_pairs(geometries, intersector, far, seed)
+    hit, distance = _run_leaf_pairs(rows, block, static, handwritten=False)
+    old_hit, old_distance = _run_leaf_pairs(rows, block, static, handwritten=True)
+    np.testing.assert_array_equal(hit, old_hit, err_msg=f"{name}: hit, formula vs former port")
+    np.testing.assert_array_equal(distance.view(np.int32), old_distance.view(np.int32), err_msg=f"{name}: distance")
+    np.testing.assert_array_equal(hit, want_hit, err_msg=f"{name}: hit, kernel vs CPU traversal")
+    np.testing.assert_array_equal(distance.view(np.int32), want_distance.view(np.int32), err_msg=f"{name}: t")
+    curve = (block[5] != 0) & ((rows[:, 19].view(np.int32) & 32) != 0)
+    assert (hit & curve).sum() >= 25 and (~hit & curve).sum() >= 30, name
+
+
 # --- the kernel's tests -------------------------------------------------------------------------------------------
 
 COMBOS = [("bezier", 4, "sphere"), ("bezier", 3, "disk"), ("catmull_rom", 4, "none")]

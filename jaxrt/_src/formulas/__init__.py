@@ -8,7 +8,9 @@ fresh module whose operation names are then bound to that backend's namespace (:
 none for JAX, ``numba.njit`` for the CPU traversal (inlined at Numba's IR level unless the module sets
 ``NUMBA_INLINE = False``), ``triton.jit`` for the GPU kernels.
 Calls between formulas resolve through the module's globals, so they reach the wrapped versions; Triton and
-Numba read a function's globals when they compile it, so they see the backend's operations.
+Numba read a function's globals when they compile it, so they see the backend's operations. A backend whose
+operations define ``constant`` gets the module's number constants through it (Triton's compiler reads only
+``tl.constexpr`` globals).
 
 The source is registered in :mod:`linecache` under a name such as ``<jaxrt.formulas.box:triton>``: Triton
 reads a jit function's source with :mod:`inspect`, and tracebacks show the formula's lines. Numba and Triton
@@ -84,6 +86,11 @@ def instance(module: str, backend: str) -> types.ModuleType:
     for op in vocabulary.__all__:
         setattr(target, op, getattr(ops, op))
     target.__dict__.update(getattr(ops, "GLOBALS", {}))
+    constant = getattr(ops, "constant", None)
+    if constant is not None:  # the module's number constants (such as ``PART_TUBE``) as the backend needs them
+        for key, value in list(target.__dict__.items()):
+            if not key.startswith("__") and type(value) in (bool, int, float):
+                setattr(target, key, constant(value))
     for key, value in list(target.__dict__.items()):
         if inspect.isfunction(value) and value.__code__.co_filename == filename:
             setattr(target, key, compiler(value))

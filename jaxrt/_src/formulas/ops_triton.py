@@ -17,6 +17,12 @@ INF = tl.constexpr(float("inf"))
 GLOBALS = {"tl": tl}
 
 
+def constant(value):
+    """A formula module's number constant (such as ``curve.PART_TUBE``) as Triton's compiler reads a global: a
+    ``tl.constexpr`` (it rejects plain Python numbers)."""
+    return tl.constexpr(value)
+
+
 @triton.jit
 def select(condition, a, b):
     return tl.where(condition, a, b)

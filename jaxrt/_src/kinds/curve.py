@@ -21,7 +21,7 @@ array                 per leaf          fill       contents
 Bounds: the Bezier hull grown by the radius (:func:`jaxrt._src.primitives.curve.segment_bounds`).
 Intersection: :func:`jaxrt._src.primitives.curve.intersect` (Newton on the segment's pieces, caps and joints);
 re-intersection: :func:`~jaxrt._src.primitives.curve.smooth_hit`. The compiled traversals' test: the formula
-:mod:`jaxrt._src.formulas.curve` (the CPU traversal's; the GPU kernel's copy is
+:mod:`jaxrt._src.formulas.curve` (the CPU traversal's, and the GPU kernel's through
 :mod:`jaxrt._src.traversal.triton_curves`). Point queries do not take curves yet. No
 decision needs JAX.
 """

@@ -5,7 +5,8 @@ Imported only by :mod:`jaxrt._src.traversal.cpu_kernel`. :func:`curve_leaf` test
 segment (``(6, 4)`` rows of :func:`jaxrt._src.curves.pack_segments`, in the geometry's dtype) with the ray's
 frame from :func:`jaxrt._src.primitives.curve.curve_ray` (computed by JAX, as the portable path computes it):
 the control points in ray space, the hull cull, and the round or flat test the segment's flags and the static
-``flat`` choice call for. A culled ray returns before the test (the formula's other backends mask instead).
+``flat`` choice call for. A culled ray returns before the test (the GPU kernel skips it where no lane of a warp
+is live; JAX masks).
 
 The static curve options travel in the kernel's integer parameters (:func:`jaxrt._src.traversal.cpu.curve_params`),
 the tolerance as the bits of its float64 value, so that it rounds to the geometry's dtype as a Python float

@@ -86,12 +86,27 @@ unnormalised direction; the extended ray block carries the direction also withou
 
 from __future__ import annotations
 
+import os
+
 import triton
 import triton.language as tl
 
 from jaxrt._src import formulas
 from jaxrt._src.traversal.triton_analytic import analytic_hit
-from jaxrt._src.traversal.triton_curves import curve_leaf, curve_ray, is_curve_leaf
+from jaxrt._src.traversal.triton_curves import curve_ray, is_curve_leaf
+
+#: The curve leaf test the kernel compiles, from ``JAXRT_CURVE_LEAF`` (read when this module is imported, that is
+#: before the first kernel is compiled): ``"formula"`` (the default), the shared formula through
+#: :func:`jaxrt._src.traversal.triton_curves.curve_leaf`; ``"handwritten"``, the former Triton port
+#: (:mod:`jaxrt._src.traversal.triton_curves_handwritten`), for a before/after timing only. Both give the same
+#: results; the kernel's cache key follows the choice (it hashes the source of the functions it calls).
+CURVE_LEAF = os.environ.get("JAXRT_CURVE_LEAF", "formula")
+if CURVE_LEAF == "formula":
+    from jaxrt._src.traversal.triton_curves import curve_leaf
+elif CURVE_LEAF == "handwritten":
+    from jaxrt._src.traversal.triton_curves_handwritten import curve_leaf
+else:
+    raise ValueError(f"JAXRT_CURVE_LEAF must be 'formula' or 'handwritten', got {CURVE_LEAF!r}")
 
 _box = formulas.instance("box", "triton")
 _slab_axis = _box.slab_axis
@@ -900,7 +915,7 @@ def trace_kernel(
 
     Curves (``CURVES = False`` compiles none of this): ``curves_ptr`` holds a curve row per primitive leaf
     (:func:`jaxrt._src.traversal.packed.pack_curves`) and ray block rows 24-33 each ray's curve frame; a leaf
-    whose row is a curve takes the round or flat segment test of :mod:`jaxrt._src.traversal.triton_curves` after
+    whose row is a curve takes the round or flat segment test of :mod:`jaxrt._src.formulas.curve` after
     the triangle test, whose answer it replaces (a primitive structure only, ``LEVELS = 0``; the options
     ``PIECES`` to ``FLAT`` are :func:`~jaxrt._src.traversal.triton_curves.curve_leaf`'s). ``CURVE_BATCH > 0``
     defers curve tests until that many lanes wait for one (or no other lane can step; see the module
