@@ -110,7 +110,7 @@ def test_curve_rows_hold_the_packed_segments():
     np.testing.assert_array_equal(rows[:, 20:], segment[:, 5])
 
 
-# --- the curve leaf test alone: the formula against the former port and the CPU traversal -------------------------
+# --- the curve leaf test alone, against the CPU traversal -----------------------------------------------------------
 
 
 def _moved(geometry, shift):
@@ -122,7 +122,7 @@ def _moved(geometry, shift):
     return rt.TriangleGeometry(np.asarray(geometry.vertices) + shift)
 
 
-#: The scenes of :func:`test_curve_leaf_formula_equals_the_former_port` (:func:`_leaf_scenes`).
+#: The scenes of :func:`test_curve_leaf_equals_the_cpu_traversal` (:func:`_leaf_scenes`).
 LEAF_SCENES = ("round", "flat", "mixed", "mixed-far", "round-far", "mixed-5-pieces", "mixed-no-newton")
 
 
@@ -213,7 +213,7 @@ def _leaf_pairs(geometries, intersector, far: float, seed: int):
     return rows[leaf], block, static, np.where(curve, hit, hit_in), np.where(curve, distance, distance_in)
 
 
-def _run_leaf_pairs(rows, block, static, handwritten: bool):
+def _run_leaf_pairs(rows, block, static):
     """The kernel's curve leaf test on every lane of ``block`` (:func:`curve_leaf_kernels.leaf_pairs`):
     ``(hit, distance)``."""
     from curve_leaf_kernels import leaf_pairs
@@ -221,7 +221,7 @@ def _run_leaf_pairs(rows, block, static, handwritten: bool):
     n = block.shape[1]
     pieces, iterations, approach, tolerance, disk, sphere, flat = static
     params = dict(LANES=32, PIECES=pieces, ITERATIONS=iterations, APPROACH=approach, TOLERANCE=tolerance,
-                  DISK=bool(disk), SPHERE=bool(sphere), FLAT=flat, HANDWRITTEN=handwritten)  # fmt: skip
+                  DISK=bool(disk), SPHERE=bool(sphere), FLAT=flat)  # fmt: skip
     if ON_GPU:
         import jax_triton as jt
 
@@ -238,20 +238,16 @@ def _run_leaf_pairs(rows, block, static, handwritten: bool):
 
 @kernel_test
 @pytest.mark.parametrize("name", LEAF_SCENES)
-def test_curve_leaf_formula_equals_the_former_port(name):
-    """The kernel's curve leaf test (the shared formula's Triton instance) gives the hits and distances of the
-    former hand-written Triton port bit for bit, and the CPU traversal's (the formula's Numba instance) bit for
-    bit: round and flat segments of every basis and cap, grazing rays, intervals ending or starting at the hit,
+def test_curve_leaf_equals_the_cpu_traversal(name):
+    """The kernel's curve leaf test (the shared formula's Triton instance) gives the CPU traversal's hits and
+    distances (the formula's Numba instance) bit for bit: round and flat segments of every basis and cap, grazing rays, intervals ending or starting at the hit,
     degenerate segments, strands far from the origin, static options; lanes that test no curve keep the
     triangle test's answer. (The curve parameter is not an output of the kernel's leaf test: the result fields
     re-intersect the leaf in JAX; ``tests/test_formulas.py`` compares the formula's ``u`` across backends.)"""
     geometries, intersector, far = _leaf_scenes()[name]
     seed = 50 + LEAF_SCENES.index(name)
     rows, block, static, want_hit, want_distance = _leaf_pairs(geometries, intersector, far, seed)
-    hit, distance = _run_leaf_pairs(rows, block, static, handwritten=False)
-    old_hit, old_distance = _run_leaf_pairs(rows, block, static, handwritten=True)
-    np.testing.assert_array_equal(hit, old_hit, err_msg=f"{name}: hit, formula vs former port")
-    np.testing.assert_array_equal(distance.view(np.int32), old_distance.view(np.int32), err_msg=f"{name}: distance")
+    hit, distance = _run_leaf_pairs(rows, block, static)
     np.testing.assert_array_equal(hit, want_hit, err_msg=f"{name}: hit, kernel vs CPU traversal")
     np.testing.assert_array_equal(distance.view(np.int32), want_distance.view(np.int32), err_msg=f"{name}: t")
     curve = (block[5] != 0) & ((rows[:, 19].view(np.int32) & 32) != 0)

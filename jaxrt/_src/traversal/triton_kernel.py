@@ -86,27 +86,12 @@ unnormalised direction; the extended ray block carries the direction also withou
 
 from __future__ import annotations
 
-import os
-
 import triton
 import triton.language as tl
 
 from jaxrt._src import formulas
 from jaxrt._src.traversal.triton_analytic import analytic_hit
-from jaxrt._src.traversal.triton_curves import curve_ray, is_curve_leaf
-
-#: The curve leaf test the kernel compiles, from ``JAXRT_CURVE_LEAF`` (read when this module is imported, that is
-#: before the first kernel is compiled): ``"formula"`` (the default), the shared formula through
-#: :func:`jaxrt._src.traversal.triton_curves.curve_leaf`; ``"handwritten"``, the former Triton port
-#: (:mod:`jaxrt._src.traversal.triton_curves_handwritten`), for a before/after timing only. Both give the same
-#: results; the kernel's cache key follows the choice (it hashes the source of the functions it calls).
-CURVE_LEAF = os.environ.get("JAXRT_CURVE_LEAF", "formula")
-if CURVE_LEAF == "formula":
-    from jaxrt._src.traversal.triton_curves import curve_leaf
-elif CURVE_LEAF == "handwritten":
-    from jaxrt._src.traversal.triton_curves_handwritten import curve_leaf
-else:
-    raise ValueError(f"JAXRT_CURVE_LEAF must be 'formula' or 'handwritten', got {CURVE_LEAF!r}")
+from jaxrt._src.traversal.triton_curves import curve_leaf, curve_ray, is_curve_leaf
 
 _box = formulas.instance("box", "triton")
 _slab_axis = _box.slab_axis
