@@ -16,6 +16,10 @@ import pytest
 # tolerance table live in ``tests/reference.py`` and are imported by name.
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+# A module of Triton kernels for tests/test_gpu_curves.py (imported there only where Triton is installed): not a
+# test module, and ``--doctest-modules`` would import it without Triton.
+collect_ignore = ["curve_leaf_kernels.py"]
+
 
 def data_dir() -> Path:
     """The shared data folder: ``$JAXRT_DATA_DIR`` when set, else ``shared/data`` beside the repository (as
