@@ -156,12 +156,12 @@ def _tested_variants() -> list[str]:
         for name, v in triton_points.VARIANTS.items():
             codes.setdefault(dataclasses.replace(v, programs=None), name)
         return list(dict.fromkeys([triton_points.VARIANT, *codes.values()]))
-    names = [triton_points.VARIANT, "near", "near-plain", "refill", "stackless-8k"]
+    names = list(dict.fromkeys([triton_points.VARIANT, "stack", "near", "near-plain", "refill", "stackless-8k"]))
     chosen = [triton_points.VARIANTS[name] for name in names]
     for field in ("vector_loads", "leaf_batch", "skip"):
         assert {getattr(v, field) for v in chosen if v.walk == "near"} == {False, True}
     assert {v.walk for v in chosen} == {"stack", "near", "refill", "stackless"}
-    return list(dict.fromkeys(names))
+    return names
 
 
 def _variant_scenes():

@@ -25,7 +25,8 @@ Variants (:class:`Variant`, :data:`VARIANTS`; ``JAXRT_POINT_VARIANT`` picks the 
 the same leaf and add the same fast winding terms in the same order (the same floats):
 
 - ``stack`` (:func:`nearest_kernel`, :func:`winding_kernel`): every node is pushed and popped, as above.
-- ``near`` (:func:`nearest_near_kernel`, :func:`winding_near_kernel`): the node to visit next stays in a
+- ``near`` (:func:`nearest_near_kernel`, :func:`winding_near_kernel`; the default, the fastest of them on an
+  H100, ``docs/point_queries.md``): the node to visit next stays in a
   register. The nearer inner child within the radius is entered at once, the farther pushed only when both are
   entered (the stack walk pushes both and pops the nearer at once: the same order and the same radius); the
   stack is popped only when no child is entered, with ``skip`` in a loop of its own until an entry lies within
@@ -900,7 +901,7 @@ VARIANTS = {
 }
 #: The variant the point queries use (read at import from ``JAXRT_POINT_VARIANT``; set it, then clear JAX's
 #: caches, to change it in a running process).
-VARIANT = os.environ.get("JAXRT_POINT_VARIANT", "stack")
+VARIANT = os.environ.get("JAXRT_POINT_VARIANT", "near")
 
 
 def variant(name: str | None = None) -> Variant:
