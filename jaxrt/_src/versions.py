@@ -23,7 +23,7 @@ import warnings
 #: This release of jaxrt (``jaxrt.__version__``; pyproject.toml states the same).
 VERSION = "0.1.0"
 MIN_JAX = (0, 10, 2)
-BELOW_JAX = (0, 13)
+BELOW_JAX = (0, 12, 1)
 #: jaxlib minor versions whose CPU YNNPACK reduce fusion gives wrong results (see the module docstring).
 _YNN_DEFECT = ((0, 11),)
 _YNN_FLAG = "--xla_cpu_experimental_ynn_fusion_type="
@@ -47,7 +47,7 @@ def parse(version: str) -> tuple[int, ...]:
 
 
 def tested_range() -> str:
-    """The tested range as a requirement string (``jax>=0.10.2,<0.13``)."""
+    """The tested range as a requirement string (``jax>=0.10.2,<0.12.1``)."""
     return f"jax>={'.'.join(map(str, MIN_JAX))},<{'.'.join(map(str, BELOW_JAX))}"
 
 
