@@ -101,6 +101,13 @@ def _triangle(tri_ptr, k, mask):
 def _leaf_distance(tri_ptr, box_ptr, flag_ptr, k, mask, px, py, pz, BOXES: tl.constexpr):
     """Squared distance from ``p`` to leaf ``k`` (its triangle, or its solid box where flagged) on ``mask``."""
     ax, ay, az, bx, by, bz, cx, cy, cz = _triangle(tri_ptr, k, mask)
+    return _vertices_distance(ax, ay, az, bx, by, bz, cx, cy, cz, box_ptr, flag_ptr, k, mask, px, py, pz, BOXES)
+
+
+@triton.jit
+def _vertices_distance(ax, ay, az, bx, by, bz, cx, cy, cz, box_ptr, flag_ptr, k, mask, px, py, pz,
+                       BOXES: tl.constexpr):  # fmt: skip
+    """Squared distance from ``p`` to leaf ``k`` given its vertices (its solid box where flagged)."""
     u, v = _closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz)
     qx, qy, qz = _triangle_point(ax, ay, az, bx, by, bz, cx, cy, cz, u, v)
     dx = px - qx
@@ -335,24 +342,7 @@ def _leaf_distance_rows(tri_ptr, box_ptr, flag_ptr, k, mask, px, py, pz, BOXES: 
                         VECTOR: tl.constexpr):  # fmt: skip
     """:func:`_leaf_distance` with the triangle read by :func:`_triangle_rows`."""
     ax, ay, az, bx, by, bz, cx, cy, cz = _triangle_rows(tri_ptr, k, mask, LANES, VECTOR)
-    u, v = _closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz)
-    qx, qy, qz = _triangle_point(ax, ay, az, bx, by, bz, cx, cy, cz, u, v)
-    dx = px - qx
-    dy = py - qy
-    dz = pz - qz
-    d = (dx * dx + dy * dy) + dz * dz
-    if BOXES:
-        is_box = tl.load(flag_ptr + k, mask=mask, other=0) != 0
-        b = box_ptr + k * 6
-        box = mask & is_box
-        db = _squared_box_distance(
-            px, py, pz,
-            tl.load(b + 0, mask=box, other=0.0), tl.load(b + 1, mask=box, other=0.0),
-            tl.load(b + 2, mask=box, other=0.0), tl.load(b + 3, mask=box, other=0.0),
-            tl.load(b + 4, mask=box, other=0.0), tl.load(b + 5, mask=box, other=0.0),
-        )  # fmt: skip
-        d = tl.where(is_box, db, d)
-    return d
+    return _vertices_distance(ax, ay, az, bx, by, bz, cx, cy, cz, box_ptr, flag_ptr, k, mask, px, py, pz, BOXES)
 
 
 @triton.jit
