@@ -51,6 +51,12 @@ esac
 
 "$VENV/bin/python" -c 'import sys, jax, jaxlib; print(f"lane {sys.argv[1]}: Python {sys.version.split()[0]}, jax {jax.__version__}, jaxlib {jaxlib.__version__}")' "$LANE"
 "$VENV/bin/python" -m ruff check jaxrt tests examples
+# JAX's persistent compilation cache, one per lane inside its environment: a program that two workers or two
+# test files compile alike is compiled once, and a second run finds the programs of the first. Deleting the
+# folder (or the environment) clears it; a JAX_COMPILATION_CACHE_DIR already set is used instead.
+export JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR:-$PWD/$VENV/jax-cache}
+export JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=${JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS:-0}
+export JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES=${JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES:--1}
 status=0
 # One pytest worker per core (pytest-xdist), each test file kept on one worker so that its module-scoped
 # fixtures and compiled shapes are shared; JAXRT_TEST_WORKERS=0 runs in this process alone.
