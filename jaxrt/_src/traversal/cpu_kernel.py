@@ -40,6 +40,7 @@ import numba
 import numpy as np
 from llvmlite import ir
 from numba import types
+from numba.core import cgutils
 from numba.extending import intrinsic
 
 from jaxrt._src import formulas
@@ -113,64 +114,130 @@ def _fetch_add(typingctx, counter, amount):
     return sig, codegen
 
 
+def _lane_mask(*lanes):
+    """An LLVM shuffle mask."""
+    i32 = ir.IntType(32)
+    return ir.Constant(ir.VectorType(i32, len(lanes)), [ir.Constant(i32, x) for x in lanes])
+
+
+def _splat(builder, value, n):
+    """``value`` in each of ``n`` lanes."""
+    vt = ir.VectorType(value.type, n)
+    zero = ir.Constant(ir.IntType(32), 0)
+    return builder.shuffle_vector(
+        builder.insert_element(ir.Constant(vt, None), value, zero), ir.Constant(vt, None), _lane_mask(*[0] * n)
+    )
+
+
+def _slab_pair(context, builder, signature, x, y, z, ray):
+    """The slab test of :func:`_box` for both boxes of a node whose axes are the vectors ``x, y, z`` (each
+    ``[lower of box 0, lower of box 1, upper of box 0, upper of box 1]``), for the ray ``(o0, o1, o2, i0, i1,
+    i2, t_min, t_max, far_scale)``: the tuple ``(hit0, near0, hit1, near1)``. Every lane computes the scalar
+    test's slab distances (the same subtraction, product and ``select``-based ``min``/``max``), and the same
+    decisions for an interval without NaN."""
+    o0, o1, o2, i0, i1, i2, t_min, t_max, far_scale = ray
+
+    def select_min(a, c):  # Numba's ``min(a, c)``: ``c if c < a else a``
+        return builder.select(builder.fcmp_ordered("<", c, a), c, a)
+
+    def select_max(a, c):
+        return builder.select(builder.fcmp_ordered(">", c, a), c, a)
+
+    nears, fars = [], []
+    for vector, o, inv in ((x, o0, i0), (y, o1, i1), (z, o2, i2)):
+        t = builder.fmul(builder.fsub(vector, _splat(builder, o, 4)), _splat(builder, inv, 4))
+        t0 = builder.shuffle_vector(t, t, _lane_mask(0, 1))  # the lower planes' distances
+        t1 = builder.shuffle_vector(t, t, _lane_mask(2, 3))
+        nears.append(select_min(t0, t1))
+        fars.append(select_max(t0, t1))
+    # The scalar test's near = max(max(max(nx, ny), nz), t_min) and hit = near <= min(far, t_max), in fewer
+    # dependent steps: max(max(nx, ny), max(t_min, nz)) and (near <= far) & (near <= t_max). The same
+    # decisions where t_min and t_max are not NaN (an enabled ray's interval): ``select`` keeps its first
+    # operand where the second is NaN, so t_min goes first; near is only compared (a zero's sign is moot).
+    # An empty box has NaN x bounds in its row (box_rows), so a NaN near: no hit.
+    near = select_max(select_max(nears[0], nears[1]), select_max(_splat(builder, t_min, 2), nears[2]))
+    far = builder.fmul(select_min(select_min(fars[0], fars[1]), fars[2]), _splat(builder, far_scale, 2))
+    hit = builder.and_(
+        builder.fcmp_ordered("<=", near, far), builder.fcmp_ordered("<=", near, _splat(builder, t_max, 2))
+    )
+    i32 = ir.IntType(32)
+    lane = lambda v, k: builder.extract_element(v, ir.Constant(i32, k))  # noqa: E731
+    values = [lane(hit, 0), lane(near, 0), lane(hit, 1), lane(near, 1)]
+    return context.make_tuple(builder, signature.return_type, values)
+
+
 @intrinsic
 def _box_pair(typingctx, rows, b, o0, o1, o2, i0, i1, i2, t_min, t_max, far_scale):
     """Both child boxes of a node (its twelve values at flat offset ``b`` of ``rows``, laid out by
     :func:`box_rows`) with the slab test of :func:`_box` for a ray parallel to no axis:
-    ``(hit0, near0, hit1, near1)``. Each axis is one vector load, ``[lower of box 0, lower of box 1, upper of
-    box 0, upper of box 1]``; every lane computes the scalar test's slab distances (the same subtraction,
-    product and ``select``-based ``min``/``max``), and the same decisions for an interval without NaN."""
+    ``(hit0, near0, hit1, near1)`` (:func:`_slab_pair`). Each axis is one vector load, ``[lower of box 0,
+    lower of box 1, upper of box 0, upper of box 1]``."""
     sig = types.Tuple((types.boolean, o0, types.boolean, o0))(rows, b, o0, o1, o2, i0, i1, i2, t_min, t_max, far_scale)  # fmt: skip
 
     def codegen(context, builder, signature, args):
         ty = args[2].type
         size = 4 if ty == ir.FloatType() else 8
         v4 = ir.VectorType(ty, 4)
-        i32 = ir.IntType(32)
-
-        def mask(*lanes):
-            return ir.Constant(ir.VectorType(i32, len(lanes)), [ir.Constant(i32, x) for x in lanes])
-
         data = context.make_array(signature.args[0])(context, builder, args[0]).data
 
         def axis(k):  # the four values at offset ``b + 4 k``
             at = builder.gep(data, [builder.add(args[1], ir.Constant(args[1].type, 4 * k))])
             return builder.load(builder.bitcast(at, v4.as_pointer()), align=size)
 
-        x, y, z = axis(0), axis(1), axis(2)
+        return _slab_pair(context, builder, signature, axis(0), axis(1), axis(2), args[2:])
 
-        def splat(value, n):
-            vt = ir.VectorType(ty, n)
-            return builder.shuffle_vector(
-                builder.insert_element(ir.Constant(vt, None), value, ir.Constant(i32, 0)),
-                ir.Constant(vt, None),
-                mask(*[0] * n),
-            )
+    return sig, codegen
 
-        def select_min(a, c):  # Numba's ``min(a, c)``: ``c if c < a else a``
-            return builder.select(builder.fcmp_ordered("<", c, a), c, a)
 
-        def select_max(a, c):
-            return builder.select(builder.fcmp_ordered(">", c, a), c, a)
+@intrinsic
+def _blended_box_pair(typingctx, lower, upper, b0, b1, w, one, o0, o1, o2, i0, i1, i2, t_min, t_max, far_scale):
+    """:func:`_node_keys` then :func:`_box_pair` for a ray parallel to no axis, without the row in memory: the
+    node's six lower and six upper corner values of one keyframe at flat offset ``b0`` of the keyframe boxes
+    ``lower``, ``upper`` ``(K, M, 2, 3)`` and of the next at ``b1`` (each a four- and a two-lane load) are
+    blended lane by lane as :func:`_blend` blends them (equal values kept), rearranged into the rows of
+    :func:`box_rows` (an empty box's x bounds NaN) and tested by :func:`_slab_pair`."""
+    sig = types.Tuple((types.boolean, o0, types.boolean, o0))(
+        lower, upper, b0, b1, w, one, o0, o1, o2, i0, i1, i2, t_min, t_max, far_scale
+    )
 
-        nears, fars = [], []
-        for vector, o, inv in ((x, args[2], args[5]), (y, args[3], args[6]), (z, args[4], args[7])):
-            t = builder.fmul(builder.fsub(vector, splat(o, 4)), splat(inv, 4))
-            t0 = builder.shuffle_vector(t, t, mask(0, 1))  # the lower planes' distances
-            t1 = builder.shuffle_vector(t, t, mask(2, 3))
-            nears.append(select_min(t0, t1))
-            fars.append(select_max(t0, t1))
-        # The scalar test's near = max(max(max(nx, ny), nz), t_min) and hit = near <= min(far, t_max), in fewer
-        # dependent steps: max(max(nx, ny), max(t_min, nz)) and (near <= far) & (near <= t_max). The same
-        # decisions where t_min and t_max are not NaN (an enabled ray's interval): ``select`` keeps its first
-        # operand where the second is NaN, so t_min goes first; near is only compared (a zero's sign is moot).
-        # An empty box has NaN x bounds in its row (box_rows), so a NaN near: no hit.
-        near = select_max(select_max(nears[0], nears[1]), select_max(splat(args[8], 2), nears[2]))
-        far = builder.fmul(select_min(select_min(fars[0], fars[1]), fars[2]), splat(args[10], 2))
-        hit = builder.and_(builder.fcmp_ordered("<=", near, far), builder.fcmp_ordered("<=", near, splat(args[9], 2)))
-        lane = lambda v, k: builder.extract_element(v, ir.Constant(i32, k))  # noqa: E731
-        values = [lane(hit, 0), lane(near, 0), lane(hit, 1), lane(near, 1)]
-        return context.make_tuple(builder, signature.return_type, values)
+    def codegen(context, builder, signature, args):
+        ty = args[4].type
+        size = 4 if ty == ir.FloatType() else 8
+        v4, v2 = ir.VectorType(ty, 4), ir.VectorType(ty, 2)
+        arrays = [context.make_array(signature.args[k])(context, builder, args[k]).data for k in (0, 1)]
+        name = "llvm.fma.v4f32" if ty == ir.FloatType() else "llvm.fma.v4f64"
+        fma = cgutils.get_or_insert_function(builder.module, ir.FunctionType(v4, [v4, v4, v4]), name)
+        w = args[4]
+        keep, weight = _splat(builder, builder.fsub(args[5], w), 4), _splat(builder, w, 4)
+
+        def corners(data, b):  # the six values at offset ``b``: a vector of the first four, one of the last two twice
+            head = builder.load(builder.bitcast(builder.gep(data, [b]), v4.as_pointer()), align=size)
+            at = builder.gep(data, [builder.add(b, ir.Constant(b.type, 4))])
+            tail = builder.load(builder.bitcast(at, v2.as_pointer()), align=size)
+            tail = builder.shuffle_vector(tail, tail, _lane_mask(0, 1, 0, 1))
+            return head, tail
+
+        def blended(data):  # _blend(a, c, w, one) = fma(1 - w, a, w c), a kept where a == c
+            out = []
+            for a, c in zip(corners(data, args[2]), corners(data, args[3]), strict=True):
+                mixed = builder.call(fma, [keep, a, builder.fmul(weight, c)])
+                out.append(builder.select(builder.fcmp_ordered("==", a, c), a, mixed))
+            return out
+
+        # lower: [l0x l0y l0z l1x] [l1y l1z . .]; upper likewise
+        (lh, lt), (uh, ut) = blended(arrays[0]), blended(arrays[1])
+        lower_xyz = builder.shuffle_vector(lh, lt, _lane_mask(0, 1, 2, 3, 4, 5, 4, 5))  # l0x l0y l0z l1x l1y l1z
+        upper_xyz = builder.shuffle_vector(uh, ut, _lane_mask(0, 1, 2, 3, 4, 5, 4, 5))
+        x = builder.shuffle_vector(lower_xyz, upper_xyz, _lane_mask(0, 3, 8, 11))
+        y = builder.shuffle_vector(lower_xyz, upper_xyz, _lane_mask(1, 4, 9, 12))
+        z = builder.shuffle_vector(lower_xyz, upper_xyz, _lane_mask(2, 5, 10, 13))
+        # An empty box (not lower <= upper in x) gets NaN x bounds, as box_rows marks it.
+        lo, up = (builder.shuffle_vector(x, x, _lane_mask(*lanes)) for lanes in ((0, 1), (2, 3)))
+        full = builder.fcmp_ordered("<=", lo, up)
+        full = builder.shuffle_vector(full, full, _lane_mask(0, 1, 0, 1))
+        nan = ir.Constant(v4, [float("nan")] * 4)
+        x = builder.select(full, x, nan)
+        return _slab_pair(context, builder, signature, x, y, z, args[6:])
 
     return sig, codegen
 
@@ -347,21 +414,6 @@ def _leaf_keys(keys, key, leaf, w, one, out):
     for v in range(3):
         for a in range(3):
             out[3 * v + a] = _blend(keys[key, leaf, v, a], keys[key + 1, leaf, v, a], w, one)
-
-
-@numba.njit(cache=True, inline="always")
-def _box_row(boxes, row, nan):
-    """Two boxes as :func:`_node_keys` writes them, laid out as one row of :func:`box_rows` (an empty box's x
-    bounds NaN)."""
-    for a in range(3):
-        row[4 * a] = boxes[a]
-        row[4 * a + 1] = boxes[3 + a]
-        row[4 * a + 2] = boxes[6 + a]
-        row[4 * a + 3] = boxes[9 + a]
-    for k in range(2):
-        if not boxes[3 * k] <= boxes[6 + 3 * k]:
-            row[k] = nan
-            row[2 + k] = nan
 
 
 @numba.njit(nogil=True, cache=True)
@@ -658,13 +710,13 @@ def trace_flat(
     stack = np.empty(max(stack_size, 1), np.int32)
     nodes_move, vanish_start, vanish_end = motion_i[0] != 0, motion_i[1] != 0, motion_i[2] != 0
     key_b = np.empty(12, consts.dtype)  # a node's boxes blended: lowers, then uppers (as _node_keys writes them)
-    key_r = np.empty(12, consts.dtype)  # the same as a row of :func:`box_rows`
     key_v = np.empty(9, consts.dtype)
-    nan = consts[0] * np.nan
     one, inf, clamp, huge, clamped_huge = consts[0], consts[2], consts[3], consts[4], consts[5]
     far_scale, parallel = consts[6], consts[7]
     lf, hf, cf, tf = node_lower.reshape(-1), node_upper.reshape(-1), node_children.reshape(-1), leaf_triangle.reshape(-1)  # fmt: skip
     rf = rows.reshape(-1)
+    lkf, ukf = node_keys_lower.reshape(-1), node_keys_upper.reshape(-1)
+    node_count = np.uint64(node_keys_lower.shape[1])
     af = analytic_rows.reshape(-1)
     width = np.uint64(analytic_rows.shape[1])
     while True:
@@ -706,11 +758,11 @@ def trace_flat(
                 c1 = cf[un * _U2 + _U1]
                 b = un * _U6
                 if moving and nodes_move:  # the node's keyframe boxes blended at the ray's time
-                    _node_keys(node_keys_lower, node_keys_upper, node_key, node, node_w, one, key_b)
-                    if straight:
-                        _box_row(key_b, key_r, nan)
-                        hit0, near0, hit1, near1 = _box_pair(key_r, _U1 - _U1, o0, o1, o2, i0, i1, i2, t_min, distance, far_scale)  # fmt: skip
+                    if straight:  # both keyframes' corners blended in vector registers
+                        at = (np.uint64(node_key) * node_count + un) * _U6
+                        hit0, near0, hit1, near1 = _blended_box_pair(lkf, ukf, at, at + node_count * _U6, node_w, one, o0, o1, o2, i0, i1, i2, t_min, distance, far_scale)  # fmt: skip
                     else:
+                        _node_keys(node_keys_lower, node_keys_upper, node_key, node, node_w, one, key_b)
                         hit0, near0 = _box(key_b[0], key_b[1], key_b[2], key_b[6], key_b[7], key_b[8], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
                         hit1, near1 = _box(key_b[3], key_b[4], key_b[5], key_b[9], key_b[10], key_b[11], o0, o1, o2, i0, i1, i2, t_min, distance, far_scale, parallel, inf)  # fmt: skip
                 elif straight:
