@@ -100,7 +100,7 @@ def _drop_compiled_programs_before_the_mapping_limit():
 def _drop_compiled_programs_after_each_module():
     """Each test file's compiled programs are let go when it ends: few are shared between files (one run of the
     suite compiles about 7,000 programs, and JAX's persistent cache finds a repeat for about 2% of their compile
-    time), while keeping them all held 5-7 GB per worker. ``scripts/test.sh`` keeps a persistent cache, so a
+    time), while holding them all took 5-7 GB per worker. ``scripts/test.sh`` keeps a persistent cache, so a
     program a later file repeats is read from disk, not compiled again."""
     yield
     import jax

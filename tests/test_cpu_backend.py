@@ -355,6 +355,45 @@ def test_keyframe_motion_in_float64_equals_the_portable_path(monkeypatch):
     assert calls and all(calls)
 
 
+def test_one_moving_triangle_beside_an_empty_leaf_equals_the_portable_path_and_float64(monkeypatch):
+    """A structure of one moving triangle: the tree links it beside an empty padding leaf, whose blended box
+    the compiled loop must reject as the portable step does (the counters would show a tested padding leaf).
+    Nearest hits equal the portable path bit for bit and match a float64 brute force on each ray's triangle
+    blended at its time."""
+    from jaxrt._src.traversal import cpu_kernel
+
+    calls = []
+    traced = cpu_kernel.trace_flat
+    monkeypatch.setattr(cpu_kernel, "trace_flat", lambda *a: (calls.append(a[MOVING]), traced(*a))[1])
+    keys = np.array(
+        [
+            [[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [0.0, 1.0, 0.0]],
+            [[-0.5, -1.0, 0.5], [1.5, -1.0, 0.5], [0.5, 1.2, 0.5]],
+        ],
+        np.float32,
+    )
+    structure = rt.build_primitive_structure(
+        rt.MotionTriangleGeometry(keys), motion=rt.MotionSpec(0.0, 1.0), capacity=SMALL_CAPACITY
+    )
+    rng = np.random.default_rng(21)
+    n = 256
+    origin = np.concatenate([rng.uniform(-1.5, 1.5, (n, 2)), np.full((n, 1), 5.0)], axis=-1).astype(np.float32)
+    direction = (np.array([0.0, 0.0, -1.0]) + rng.normal(scale=0.05, size=(n, 3))).astype(np.float32)
+    time = rng.uniform(0.0, 1.0, n).astype(np.float32)
+    rays = rt.Ray(origin, direction, time=time)
+    tags = (rt.tags.primitive_motion, rt.tags.triangle_data, rt.tags.stats)
+    portable, compiled = (rt.Intersector(*tags, backend=b).intersect(rays, structure) for b in ("portable", "cpu"))
+    hit = np.asarray(portable.type) != 0
+    assert 0 < hit.sum() < n
+    for name in ("type", "distance", "primitive_id", *STATS):
+        np.testing.assert_array_equal(np.asarray(compiled[name]), np.asarray(portable[name]), err_msg=name)
+    assert calls and all(calls)  # the compiled loop traced them, with motion
+    w = time.astype(np.float64)[:, None, None]  # keyframes at times 0 and 1
+    blended = (1.0 - w) * keys[0].astype(np.float64) + w * keys[1].astype(np.float64)
+    ref = brute_force(origin, direction, np.zeros(n), np.full(n, np.inf), blended, pairs=True)
+    assert_matches_reference(compiled, ref, [1])
+
+
 def test_no_recompile_within_a_bucket():
     v, f, origin, direction = _mesh_and_rays(200)
     structure = rt.build_primitive_structure(rt.TriangleGeometry(v, f))
